@@ -30,7 +30,9 @@ class CameraIntrinsics:
 
     def __post_init__(self) -> None:
         if self.width < 1 or self.height < 1:
-            raise InputError(f"intrinsics: width and height must be >= 1, got {self.width}x{self.height}")
+            raise InputError(
+                f"intrinsics: width and height must be >= 1, got {self.width}x{self.height}"
+            )
         for name in ("fx", "fy"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -66,7 +68,10 @@ def _pixel_rays(k: CameraIntrinsics) -> tuple[NDArray[np.float32], NDArray[np.fl
     return rays
 
 
-def look_at(eye: NDArray, target: NDArray, up: NDArray = np.array([0.0, 0.0, 1.0])) -> FloatArray:
+_Z_UP = (0.0, 0.0, 1.0)
+
+
+def look_at(eye: NDArray, target: NDArray, up: NDArray | tuple = _Z_UP) -> FloatArray:
     """``pose_world_camera`` of a camera at ``eye`` looking at ``target`` (image ``y`` down)."""
     eye = np.asarray(eye, float)
     z = np.asarray(target, float) - eye
@@ -99,13 +104,16 @@ class DepthFrame:
         k = self.intrinsics
         if depth.shape != (k.height, k.width):
             raise InputError(
-                f"depth_m: expected shape ({k.height}, {k.width}) from the intrinsics, got {depth.shape}"
+                f"depth_m: expected shape ({k.height}, {k.width}) from the intrinsics, "
+                f"got {depth.shape}"
             )
         if not np.issubdtype(depth.dtype, np.floating):
             raise InputError(f"depth_m: expected a float image in metres, got dtype {depth.dtype}")
         pose = np.asarray(self.pose_world_camera, dtype=np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-            raise InputError(f"pose_world_camera: expected a finite 4x4 transform, got {pose.shape}")
+            raise InputError(
+                f"pose_world_camera: expected a finite 4x4 transform, got {pose.shape}"
+            )
         object.__setattr__(self, "pose_world_camera", pose)
 
     @property
@@ -118,7 +126,9 @@ class DepthFrame:
         """The camera's optical centre in the world frame."""
         return self.pose_world_camera[:3, 3].copy()
 
-    def points_camera(self, rows: slice = slice(None), cols: slice = slice(None)) -> NDArray[np.float32]:
+    def points_camera(
+        self, rows: slice = slice(None), cols: slice = slice(None)
+    ) -> NDArray[np.float32]:
         """Valid pixels of the region ``[rows, cols]`` as ``(N, 3)`` float32 in the camera frame."""
         xs, ys = self.intrinsics.pixel_rays()
         z = self.depth_m[rows, cols]

@@ -217,7 +217,9 @@ class StageConfig:
             if not rest:
                 raise ConfigError(f"{dotted}: is a table; name one of its keys")
             try:
-                return dataclasses.replace(self, **{head: getattr(self, head).replace_path(rest, value)})
+                return dataclasses.replace(
+                    self, **{head: getattr(self, head).replace_path(rest, value)}
+                )
             except ConfigError as err:
                 msg = str(err)
                 raise ConfigError(msg if msg.startswith(head + ".") else f"{head}.{msg}") from None

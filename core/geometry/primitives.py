@@ -94,7 +94,7 @@ class Capsule:
 
 @dataclass(frozen=True)
 class Box:
-    """Oriented box: ``center`` (3,), ``half_extents`` (3,) in m, ``rotation`` (3, 3) box-to-world."""
+    """Oriented box: ``center`` (3,), ``half_extents`` (3,) in m, ``rotation`` box-to-world."""
 
     center: FloatArray
     half_extents: FloatArray
@@ -134,7 +134,9 @@ class Box:
 Primitive = Sphere | Capsule | Box
 
 
-def inside_any(points: FloatArray, primitives: tuple[Primitive, ...] | list[Primitive], margin_m: float = 0.0) -> BoolArray:
+def inside_any(
+    points: FloatArray, primitives: tuple[Primitive, ...] | list[Primitive], margin_m: float = 0.0
+) -> BoolArray:
     """True for points inside any of ``primitives`` grown by ``margin_m``."""
     mask = np.zeros(len(points), dtype=bool)
     for prim in primitives:

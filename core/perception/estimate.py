@@ -115,4 +115,6 @@ class SurfaceEstimate:
     @classmethod
     def invalid(cls, t: float, camera: str, reason: str, **extra: Any) -> SurfaceEstimate:
         """An estimate flagged invalid with ``reason`` (finite placeholder vectors)."""
-        return cls(t=t, camera=camera, centroid=_ZERO3, normal=_UP, valid=False, reason=reason, **extra)
+        return cls(
+            t=t, camera=camera, centroid=_ZERO3, normal=_UP, valid=False, reason=reason, **extra
+        )

@@ -1,0 +1,334 @@
+"""SurfaceFusion: noisy 30 Hz per-camera estimates in, a smooth surface at any sample time out.
+
+``add`` keeps the valid estimates of every camera in a sliding window; ``sample(t)`` refits the
+window only when an estimate arrived since the last fit (the polynomial is cached, evaluating it is
+a few float operations), evaluates it at ``t`` (extrapolating at most ``max_extrapolation_s`` past
+the newest estimate, then holding), and moves the PID followers one tick toward that target.
+
+Staleness: with no valid estimate for ``max_age_s`` the output is invalid and stale and the
+followers forget their state; an estimate arriving after such a gap also drops the pre-gap
+window, so the output restarts from the new data without a jump toward the old state.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from ..perception.estimate import SurfaceEstimate
+from ..validation import as_finite_scalar
+from .config import FusionConfig
+from .follower import NormalFollower, PidGains, PointFollower
+from .regression import PolyFit, Vec3, fit_window
+
+FloatArray = NDArray[np.float64]
+
+_ZERO: Vec3 = (0.0, 0.0, 0.0)
+_UP: Vec3 = (0.0, 0.0, 1.0)
+
+
+def _vec(v: Vec3) -> FloatArray:
+    arr = np.array(v, dtype=np.float64)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, slots=True)
+class FusedSurface:
+    """The fused surface at sample time ``t`` (s).
+
+    ``centroid`` (m) and unit ``normal`` (out of the surface toward the HIP) are the follower's
+    output; ``target_centroid`` / ``target_normal`` the regression's value before the follower
+    (the paper's Fig. 8 "planned trajectory"); ``velocity`` (m/s) the regression's derivative at
+    ``t`` (zero while holding). All vectors are finite read-only ``(3,)`` arrays; when ``valid`` is
+    False they are the last values held (or placeholders) and ``reason`` says why; a valid result
+    has ``reason`` empty or starting with ``"holding"``. ``age_s`` is the time since the newest
+    valid estimate (s, ``inf`` before any), ``n_samples`` / ``degree`` (of the centroid) /
+    ``cameras`` describe the fit, ``seq`` counts the results produced.
+    """
+
+    t: float
+    centroid: FloatArray
+    normal: FloatArray
+    valid: bool
+    velocity: FloatArray
+    target_centroid: FloatArray
+    target_normal: FloatArray
+    age_s: float
+    stale: bool
+    reason: str
+    n_samples: int
+    degree: int
+    cameras: tuple[str, ...]
+    seq: int
+
+
+class SurfaceFusion:
+    """Merges estimates of all cameras and up-samples them to the control rate.
+
+    Parameters
+    ----------
+    config
+        Window, weights, follower gains, limits (defaults: :class:`FusionConfig`).
+
+    Examples
+    --------
+    >>> from hapticloud.core.perception.estimate import SurfaceEstimate
+    >>> fusion = SurfaceFusion(FusionConfig())
+    >>> fusion.add(SurfaceEstimate(0.0, "cam0", (0.1, 0.0, 0.5), (0.0, 0.0, 1.0), True))
+    True
+    >>> fused = fusion.sample(0.01)
+    >>> fused.valid, fused.centroid.tolist(), fused.normal.tolist()
+    (True, [0.1, 0.0, 0.5], [0.0, 0.0, 1.0])
+    """
+
+    def __init__(self, config: FusionConfig | None = None) -> None:
+        cfg = FusionConfig() if config is None else config
+        if not isinstance(cfg, FusionConfig):
+            raise InputError(f"config: expected a FusionConfig, got {type(cfg).__name__}")
+        self._cfg = cfg
+        self._point = PointFollower(PidGains.make(cfg.kp, cfg.ki, cfg.kd, cfg.i_accel_limit_m_s2))
+        self._normal = NormalFollower(
+            PidGains.make(
+                cfg.normal_kp, cfg.normal_ki, cfg.normal_kd, cfg.normal_i_accel_limit_rad_s2
+            )
+        )
+        self.n_added = 0
+        self.n_invalid = 0
+        self.n_late = 0
+        self.reset()
+
+    @property
+    def config(self) -> FusionConfig:
+        return self._cfg
+
+    @property
+    def fit(self) -> PolyFit | None:
+        """The current window's polynomials (see :meth:`prepare`), ``None`` with no data."""
+        return self.prepare()
+
+    def prepare(self) -> PolyFit | None:
+        """Refit now if an estimate arrived since the last fit; returns the current fit.
+
+        :meth:`sample` does this lazily; a caller that adds estimates outside the control tick
+        can call it right after :meth:`add` so the tick only evaluates the cached polynomials.
+        """
+        self._refit()
+        return self._fit
+
+    @property
+    def last(self) -> FusedSurface | None:
+        """The most recent result of :meth:`sample`."""
+        return self._last
+
+    def reset(self) -> None:
+        """Forget all estimates and the followers' state (counters are kept)."""
+        self._rows: list[tuple[float, ...]] = []  # (t, cx, cy, cz, nx, ny, nz) per estimate
+        self._cam: list[str] = []
+        self._newest = -math.inf
+        self._dirty = False
+        self._fit: PolyFit | None = None
+        self._fit_id = 0
+        self._prev_eval: tuple[int, float, Vec3, Vec3] | None = None
+        self._t_prev = -math.inf
+        self._last: FusedSurface | None = None
+        self._hold: tuple[Vec3, Vec3] | None = None
+        self._last_fit_id = -1
+        self._seq = 0
+        self._point.reset()
+        self._normal.reset()
+
+    # ----- input -----------------------------------------------------------------------------
+    def add(self, est: SurfaceEstimate) -> bool:
+        """Take one estimate of any camera; returns True if it entered the window.
+
+        Invalid estimates and non-finite times are counted in ``n_invalid``, estimates older than
+        the window in ``n_late``; neither is used.
+        """
+        if not isinstance(est, SurfaceEstimate):
+            raise InputError(f"est: expected a SurfaceEstimate, got {type(est).__name__}")
+        self.n_added += 1
+        t = est.t
+        if not est.valid or not math.isfinite(t):
+            self.n_invalid += 1
+            return False
+        cfg = self._cfg
+        if t > self._newest + cfg.max_age_s and self._rows:
+            # After a stale gap the old window describes a surface that has since moved.
+            self._drop_all()
+        elif t <= self._newest - cfg.window_s:
+            self.n_late += 1
+            return False
+        self._rows.append((t, *est.centroid.tolist(), *est.normal.tolist()))
+        self._cam.append(est.camera)
+        if t > self._newest:
+            self._newest = t
+        self._dirty = True
+        return True
+
+    def _drop_all(self) -> None:
+        self._rows, self._cam = [], []
+        self._point.reset()
+        self._normal.reset()
+
+    def _refit(self) -> None:
+        if not self._dirty:
+            return
+        self._dirty = False
+        cfg = self._cfg
+        rows = np.array(self._rows)
+        times = rows[:, 0]
+        keep = np.flatnonzero(times > self._newest - cfg.window_s)  # edge weight is 0
+        if keep.size > cfg.max_samples:
+            # Newest first by time (stable, so the order of arrival breaks ties deterministically).
+            keep = np.sort(keep[np.argsort(-times[keep], kind="stable")[: cfg.max_samples]])
+        if keep.size < times.size:
+            idx = keep.tolist()
+            self._rows = [self._rows[i] for i in idx]
+            self._cam = [self._cam[i] for i in idx]
+            rows = rows[keep]
+        self._fit = fit_window(
+            rows[:, 0],
+            rows[:, 1:4],
+            rows[:, 4:7],
+            self._cam,
+            window_s=cfg.window_s,
+            half_life_s=cfg.weight_half_life_s,
+            weighting=cfg.weighting,
+            max_degree=cfg.max_degree,
+            normal_max_degree=cfg.normal_max_degree,
+            time_resolution_s=cfg.time_resolution_s,
+        )
+        self._fit_id += 1
+
+    # ----- output ----------------------------------------------------------------------------
+    def sample(self, t: float) -> FusedSurface:
+        """The fused surface at time ``t`` (s), advancing the followers by ``t - previous t``.
+
+        A ``t`` not after the previous sample time does not advance the followers (the result is
+        reported at the previous time); a gap longer than ``reset_dt_s`` restarts them at the
+        target.
+        """
+        t = t if type(t) is float and math.isfinite(t) else as_finite_scalar(t, "t")
+        self._refit()
+        advance = t > self._t_prev
+        if not advance:
+            if self._last is not None and self._last_fit_id == self._fit_id:
+                return self._last
+            t = self._t_prev if self._t_prev > -math.inf else t
+        t_prev = self._t_prev
+        dt = t - t_prev
+        self._t_prev = t
+        fit = self._fit
+        cfg = self._cfg
+        if fit is None:
+            return self._emit(
+                t,
+                _ZERO,
+                _UP,
+                _ZERO,
+                _UP,
+                _ZERO,
+                False,
+                False,
+                "no valid estimate yet",
+                math.inf,
+                None,
+            )
+        age = t - fit.t_ref
+        if not fit.valid:
+            self._point.reset()
+            self._normal.reset()
+            return self._emit(t, *self._held(fit, t), _ZERO, False, False, fit.reason, age, fit)
+        if age > cfg.max_age_s:
+            held = self._held(fit, t)
+            self._point.reset()
+            self._normal.reset()
+            reason = f"stale: no valid estimate for {age:.3f} s (max_age_s {cfg.max_age_s})"
+            return self._emit(t, *held, _ZERO, False, True, reason, age, fit)
+        horizon = fit.t_ref + cfg.max_extrapolation_s
+        t_eval = t if t < horizon else horizon
+        tc, tn, vel = fit.evaluate(t_eval)
+        reason = ""
+        if t > horizon:
+            vel = _ZERO
+            reason = f"holding: newest estimate {age:.3f} s old (max_extrapolation_s reached)"
+        point, normal = self._point, self._normal
+        if not point.initialised or dt > cfg.reset_dt_s:
+            point.reset(tc)
+            normal.reset(tn)
+            yc, yn = tc, tn
+        elif advance:
+            yc, yn = self._follow(fit, t_eval, min(t_prev, horizon), tc, tn, dt)
+        else:
+            yc, yn = tuple(point.y), normal.n
+        self._prev_eval = (self._fit_id, t_eval, tc, tn)
+        return self._emit(t, yc, yn, tc, tn, vel, True, False, reason, age, fit)
+
+    def _follow(
+        self, fit: PolyFit, t_eval: float, t_eval_prev: float, tc: Vec3, tn: Vec3, dt: float
+    ) -> tuple[Vec3, Vec3]:
+        cfg = self._cfg
+        ff = cfg.feedforward
+        ffc: Vec3 = _ZERO
+        pn: Vec3 | None = None
+        if ff > 0.0:
+            prev = self._prev_eval
+            if prev is not None and prev[0] == self._fit_id and prev[1] == t_eval_prev:
+                pc, pn = prev[2], prev[3]
+            else:
+                # The target moved along this polynomial since the previous tick; re-evaluating
+                # it there keeps a refit's jump out of the feed-forward (the PID smooths that).
+                pc, pn, _ = fit.evaluate(t_eval_prev)
+            ffc = (ff * (tc[0] - pc[0]), ff * (tc[1] - pc[1]), ff * (tc[2] - pc[2]))
+        yc = self._point.step(tc, dt, ffc, cfg.max_speed_m_s * dt)
+        yn = self._normal.step(tn, dt, pn, ff, cfg.max_normal_rate_rad_s * dt)
+        return yc, yn
+
+    def _held(self, fit: PolyFit, t: float) -> tuple[Vec3, Vec3, Vec3, Vec3]:
+        """Output and target shown while invalid: the last output if any, the held fit value."""
+        tc, tn, _ = fit.evaluate(min(t, fit.t_ref + self._cfg.max_extrapolation_s))
+        if self._hold is not None:
+            return self._hold[0], self._hold[1], tc, tn
+        return tc, tn, tc, tn
+
+    def _emit(
+        self,
+        t: float,
+        yc: Vec3,
+        yn: Vec3,
+        tc: Vec3,
+        tn: Vec3,
+        vel: Vec3,
+        valid: bool,
+        stale: bool,
+        reason: str,
+        age: float,
+        fit: PolyFit | None,
+    ) -> FusedSurface:
+        self._seq += 1
+        self._last_fit_id = self._fit_id
+        if valid:
+            self._hold = (yc, yn)
+        out = FusedSurface(
+            t=t,
+            centroid=_vec(yc),
+            normal=_vec(yn),
+            valid=valid,
+            velocity=_vec(vel),
+            target_centroid=_vec(tc),
+            target_normal=_vec(tn),
+            age_s=max(age, 0.0),
+            stale=stale,
+            reason=reason,
+            n_samples=0 if fit is None else fit.n_samples,
+            degree=0 if fit is None else fit.degree,
+            cameras=() if fit is None else fit.cameras,
+            seq=self._seq,
+        )
+        self._last = out
+        return out

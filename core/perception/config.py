@@ -1,0 +1,44 @@
+"""All perception parameters of one camera: one table per stage (A-E)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..config import StageConfig, nested, param
+from ..errors import ConfigError
+from .abstraction import AbstractionConfig
+from .cluster import ClusterConfig
+from .crop import CropConfig
+from .reconstruct import ReconstructionConfig
+from .voxel import VoxelConfig
+
+
+@dataclass(frozen=True)
+class PerceptionConfig(StageConfig):
+    """Parameters of :class:`~hapticloud.core.perception.CameraPipeline`.
+
+    The shipped defaults are the tuned ones (``docs/benchmarks.md`` has the study behind them).
+    Stage tables: ``crop`` (A), ``voxel`` (B), ``cluster`` (C), ``reconstruction`` (D, the ICP
+    memory ring), ``abstraction`` (E, the surface estimator).
+    """
+
+    crop: CropConfig = nested(CropConfig)
+    voxel: VoxelConfig = nested(VoxelConfig)
+    cluster: ClusterConfig = nested(ClusterConfig)
+    reconstruction: ReconstructionConfig = nested(ReconstructionConfig)
+    abstraction: AbstractionConfig = nested(AbstractionConfig)
+    keep_points: bool = param(
+        True, doc="attach the kept and filled points to each estimate (for the app; costs copies)"
+    )
+
+    def check(self) -> None:
+        workspace = self.crop.workspace_radius_m
+        for name, radius in (
+            ("abstraction.r_out_m", self.abstraction.r_out_m),
+            ("reconstruction.r_out_m", self.reconstruction.r_out_m),
+        ):
+            if radius > workspace + 1e-12:
+                raise ConfigError(
+                    f"{name} = {radius}: must not exceed crop.workspace_radius_m = {workspace}"
+                    " (points beyond the workspace are never seen)"
+                )

@@ -1,0 +1,352 @@
+"""The curvature-aware estimator: a robust local quadric and its exact closest point to the HIP.
+
+The paper's shells replace the surface by ring circles whose centres lie inside a curved surface
+(10-16 mm deep on a head-sized sphere). Here the surface itself is modelled near the closest
+point and the closest point is computed on the model:
+
+1. start from a plane through the points nearest the HIP, normal facing the camera;
+2. in the frame at the current closest-point estimate (z along its normal), fit
+   ``z = f(x, y, z)`` by weighted least squares: Gaussian weights of width ``bandwidth_m``
+   around the estimate times robust (Tukey/Huber) weights from the previous residuals. The
+   model is the simplest of plane / paraboloid / spheroid (+z², exact for spheres and
+   cylinders) / quadric (+z², xz, yz) that the points support (BIC, all four from one QR);
+   the z-terms use a paraboloid's prediction of z, then Gauss-Newton on the model's own
+   heights (no measured z among the regressors: no errors-in-variables bias, no spurious
+   pair-of-planes fits);
+3. move to the exact closest point of that surface to the HIP (secular equation) and its normal;
+   repeat 2-3 (``n_refits``): re-centring the weights on the closest point reduces the
+   higher-order bias; the refits before the last use a coarse subset and the paraboloid;
+4. check the answer: a closest point on the near sheet, a surface that stays one height field
+   over the hidden region around it, a closest point within ``max_extrapolation_m`` of the
+   data. A model failing a check gives way to the next simpler one; if all fail, the paper's
+   shells answer (``model="shells"``, half the quality) or the result is flagged invalid.
+
+Because the model extrapolates smoothly, the closest point may lie in a region the end effector
+hides: the points around it carry the curvature. Known limit: structure the models cannot
+follow inside the bandwidth (an edge, a step between two surfaces) is smoothed over; the robust
+weights then reject part of the points and ``quality`` drops with the inlier fraction.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry.fits import (
+    QUADRIC_MODELS,
+    RANK_TOL,
+    NestedQuadricLSQ,
+    local_quadric_closest,
+    local_quadric_distance,
+    paraboloid_height,
+    quadric_height,
+    refine_quadric_heights,
+)
+from ..geometry.rotations import EDGE_ON_COS, frame_from_unit_normal
+from .abstraction import AbstractionConfig, QuadricConfig, SurfaceFit, concentric_shells
+
+FloatArray = NDArray[np.float64]
+
+_MAD_TO_SIGMA = 1.4826
+# Spatial weights below exp(-0.5 * 3^2) ~ 0.011 are dropped from the fit (speed).
+_SUPPORT_SIGMAS = 3.0
+_MODEL_ORDER = tuple(QUADRIC_MODELS)  # simplest first
+_CANDIDATE_MARGIN_M = 0.02
+_SECTORS = 36
+# The closest point's normal must stay within ~75° of the frame's: else it sits on another sheet.
+_MIN_NORMAL_COS = 0.25
+# Height-field check of spheroid/quadric fits: D = -dF/dz below this counts as folded.
+_MIN_SHEET_DEN = 0.2
+# Probes around the closest point (centre and two rings, in units of its gap to the data).
+_PROBE_RING = np.vstack(
+    [np.zeros((1, 2))]
+    + [
+        r * np.column_stack((np.cos(a), np.sin(a)))
+        for r, a in (
+            (0.5, np.linspace(0, 2 * np.pi, 8, endpoint=False)),
+            (1.0, np.linspace(0, 2 * np.pi, 12, endpoint=False)),
+        )
+    ]
+)
+
+
+def _robust_weights(res: FloatArray, scale: float, cfg: QuadricConfig) -> FloatArray:
+    if cfg.robust == "none":
+        return np.ones_like(res)
+    u = np.abs(res) / (cfg.robust_k * scale)
+    if cfg.robust == "huber":
+        return 1.0 / np.maximum(u, 1.0)
+    return np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)
+
+
+def _robust_scale(res: FloatArray, floor: float) -> float:
+    """Residual scale (m) from the median absolute residual, floored at the noise level."""
+    if len(res) == 0:
+        return floor
+    mid = len(res) // 2
+    mad = float(np.partition(np.abs(res), mid)[mid])
+    return max(_MAD_TO_SIGMA * mad, floor)
+
+
+def _fallback(
+    points: FloatArray,
+    hip: FloatArray,
+    cam: FloatArray,
+    cfg: AbstractionConfig,
+    reason: str,
+) -> SurfaceFit:
+    n = len(points)
+    if cfg.quadric.fallback == "paper":
+        fit = concentric_shells(points, hip, cam, cfg)
+        if fit.valid:
+            return SurfaceFit(
+                True,
+                fit.centroid,
+                fit.normal,
+                f"fallback to shells: {reason}",
+                fit.shells,
+                0.5 * fit.quality,
+                "quadric",
+                "shells",
+                n,
+            )
+        reason = f"{reason}; shells: {fit.reason}"
+    return SurfaceFit.invalid(reason, method="quadric", n_points=n)
+
+
+def _face_camera(normal: FloatArray, cam: FloatArray, to_hip: FloatArray) -> FloatArray:
+    """Alg. 2's sign rule (``orient_normal``) without argument checks, for the inner loop."""
+    nz = float(normal @ cam)
+    if abs(nz) < EDGE_ON_COS:
+        side = float(normal @ to_hip)
+        if side != 0.0:
+            return normal if side > 0.0 else -normal
+    return -normal if nz > 0.0 else normal
+
+
+def quadric_surface(
+    points: FloatArray, hip: FloatArray, camera_axis: FloatArray, cfg: AbstractionConfig
+) -> SurfaceFit:
+    """The curvature-aware estimate on points already validated and cropped to ``r_out`` (m).
+
+    Parameters
+    ----------
+    points
+        ``(N, 3)`` finite points within ``cfg.r_out_m`` of the HIP (world frame, m).
+    hip
+        HIP (m).
+    camera_axis
+        Unit viewing direction; the normal is turned to face the camera.
+    cfg
+        Stage parameters; ``cfg.quadric`` holds this estimator's knobs.
+
+    Returns
+    -------
+    SurfaceFit
+        ``model`` names the chosen surface model; ``quality`` in 0..1 combines the inlier
+        fraction, the residual level against the noise floor and how well the data surround the
+        closest point. Falls back to the paper's shells (``model="shells"``) when the fit fails.
+    """
+    qc = cfg.quadric
+    n = len(points)
+    if n < qc.min_points:
+        return _fallback(points, hip, camera_axis, cfg, f"{n} points < min_points {qc.min_points}")
+    # Everything relative to the HIP (at 0): far from the world origin nothing loses precision.
+    # A uniform subsample of about max_points is all the fits below use (speed).
+    rel = points[:: max(1, n // qc.max_points)] - hip
+    d2 = np.einsum("ij,ij->i", rel, rel)
+    bw = qc.bandwidth_m
+
+    # 1. Initial plane through the points near the nearest ones (a few skipped: flying pixels).
+    k = min(len(rel) - 1, max(2, len(rel) // 200))
+    d_near = float(np.sqrt(np.partition(d2, k)[k]))
+    cap = rel[d2 < (d_near + bw) ** 2]
+    start = _initial_plane(cap[:: max(1, len(cap) // qc.coarse_points)])
+    if start is None:
+        return _fallback(points, hip, camera_axis, cfg, "no plane through the nearest points")
+    centroid, normal = start
+    normal = _face_camera(normal, camera_axis, -centroid)
+    origin = float(centroid @ normal) * normal  # foot of the HIP on that plane
+
+    # The fits look within _SUPPORT_SIGMAS bandwidths of the estimate, which moves by a few mm:
+    # a margin keeps one candidate set for all refits. The refits before the last one only
+    # move the frame: a coarser subset does that as well, and faster.
+    reach = _SUPPORT_SIGMAS * bw + _CANDIDATE_MARGIN_M
+    off = rel - origin
+    cand = rel[np.einsum("ij,ij->i", off, off) < reach * reach]
+    cand = cand[:: max(1, round(len(cand) / qc.max_points))]
+    coarse = cand[:: max(1, len(cand) // qc.coarse_points)]
+    models = _MODEL_ORDER if qc.model == "auto" else (qc.model,)
+    # Frame-moving refits need no fourth-order terms and no model choice: the last one has both.
+    coarse_models = ("plane",) if models == ("plane",) else ("paraboloid",)
+    robust = np.ones(len(coarse) if qc.n_refits > 1 else len(cand))
+    scale, inliers = qc.noise_floor_m, 1.0
+    model = models[0]
+    for it in range(qc.n_refits):
+        last = it == qc.n_refits - 1
+        step = _refit(
+            cand if last else coarse, robust, origin, normal, models if last else coarse_models, qc
+        )
+        if isinstance(step, str):
+            return _fallback(points, hip, camera_axis, cfg, step)
+        origin_new, normal_new, model, frame, coef = step
+        if not last:
+            # Robust weights for the next refit, from this fit's residuals (m).
+            nxt = cand if it == qc.n_refits - 2 else coarse
+            off = nxt - origin
+            res = local_quadric_distance(off @ frame * (1.0 / bw), coef) * bw
+            near = np.einsum("ij,ij->i", off, off) < (2.0 * bw) ** 2
+            scale = _robust_scale(res[near], qc.noise_floor_m)
+            robust = _robust_weights(res, scale, qc)
+            inliers = float(np.count_nonzero(robust[near] > 0.5)) / max(1, int(near.sum()))
+        origin = origin_new
+        normal = _face_camera(normal_new, camera_axis, -origin)
+
+    # 4. Checks: the closest point must be near the data and, for full quality, surrounded by it.
+    off = cand - origin
+    gap_to_data = float(np.sqrt(np.min(np.einsum("ij,ij->i", off, off))))
+    if gap_to_data > qc.max_extrapolation_m:
+        return _fallback(
+            points, hip, camera_axis, cfg, f"closest point {gap_to_data:.3f} m from the data"
+        )
+    inlier = robust > 0.5
+    surround = _surround(off[inlier][:: max(1, len(off) // qc.coarse_points)], normal, bw)
+    noise_ratio = scale / qc.noise_floor_m
+    quality = inliers * surround / (1.0 + 0.01 * noise_ratio * noise_ratio)
+    return SurfaceFit(True, hip + origin, normal, "", (), quality, "quadric", model, n)
+
+
+def _initial_plane(pts: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+    """Centroid and unit normal (either sign) of the points by SVD; None if they are collinear."""
+    if len(pts) < 3:
+        return None
+    centroid = pts.mean(axis=0)
+    _, sv, vt = np.linalg.svd(pts - centroid, full_matrices=False)
+    if not sv[1] > RANK_TOL * sv[0]:
+        return None
+    return centroid, vt[2]
+
+
+def _refit(
+    pts: FloatArray,
+    robust: FloatArray,
+    origin: FloatArray,
+    normal: FloatArray,
+    models: tuple[str, ...],
+    qc: QuadricConfig,
+) -> tuple[FloatArray, FloatArray, str, FloatArray, FloatArray] | str:
+    """One weighted fit in the frame at ``origin``; its closest point to the HIP (at 0).
+
+    Returns ``(closest, normal, model, frame, coef)`` or a string saying what failed.
+    """
+    bw = qc.bandwidth_m
+    frame = frame_from_unit_normal(normal)
+    local = ((pts - origin) @ frame) * (1.0 / bw)
+    r2 = np.einsum("ij,ij->i", local, local)
+    sel = np.flatnonzero(r2 < _SUPPORT_SIGMAS**2)
+    w = np.exp(-0.5 * r2[sel]) * robust[sel]
+    if int(np.count_nonzero(w > 1e-3)) < qc.min_points:
+        return f"{int(np.count_nonzero(w > 1e-3))} points near the surface"
+    q = local[sel]
+    k_max = max(len(QUADRIC_MODELS[m]) for m in models)
+    lsq = NestedQuadricLSQ(q, w, min(k_max, 6))
+    coef6 = None
+    if k_max > 6:
+        # The z-terms use a prediction of z, not the measured z: with z on both sides the fit
+        # explains noise with itself (errors in variables; on flat data a pair of planes).
+        coef6, _ = lsq.solve("paraboloid")
+        if coef6 is not None:
+            lsq = NestedQuadricLSQ(q, w, k_max, paraboloid_height(q, coef6))
+    h_local = -(origin @ frame) / bw
+    failure = "ill-conditioned surface fit"
+    for model in _ranked_models(lsq, w, models, qc):
+        coef, _ = lsq.solve(model)
+        if coef is None:
+            continue
+        if len(QUADRIC_MODELS[model]) > 6:
+            coef = refine_quadric_heights(q, w, coef, model, qc.shape_iterations)
+        found = local_quadric_closest(coef, h_local)
+        if found is None:
+            failure = "no closest point on the fit"
+            continue
+        q_star, n_star = found
+        if not n_star[2] > _MIN_NORMAL_COS:
+            failure = "closest point on a far sheet of the fit"
+            continue
+        if len(QUADRIC_MODELS[model]) > 6 and not _one_sheet(q, coef, q_star):
+            # The z-terms chased noise: a second sheet or a hole where the data are silent.
+            failure = f"{model} fit folds near the closest point"
+            continue
+        return origin + bw * (frame @ q_star), frame @ n_star, model, frame, coef
+    return failure
+
+
+def _ranked_models(
+    lsq: NestedQuadricLSQ, w: FloatArray, models: tuple[str, ...], qc: QuadricConfig
+) -> list[str]:
+    """``models`` by increasing BIC: the simplest model that explains the data comes first.
+
+    A single (forced) model is followed by the simpler ones, in case the data cannot carry it
+    (a plane has no curvature to fit).
+    """
+    if len(models) == 1:
+        return list(reversed(_MODEL_ORDER[: _MODEL_ORDER.index(models[0]) + 1]))
+    wsum = float(w.sum())
+    n_eff = wsum * wsum / float(w @ w)
+    log_n = math.log(max(n_eff, 2.0))
+    scores = []
+    for i, m in enumerate(models):
+        rss = lsq.rss(m)
+        if np.isfinite(rss):
+            fit_term = n_eff * math.log(max(rss / wsum, 1e-300))
+            scores.append((fit_term + qc.bic_penalty * len(QUADRIC_MODELS[m]) * log_n, i, m))
+    return [m for _, _, m in sorted(scores)]
+
+
+def _one_sheet(q: FloatArray, coef: FloatArray, q_star: FloatArray) -> bool:
+    """True when a spheroid/quadric fit is one smooth height field around the closest point.
+
+    ``D = -dF/dz = 1 - 2 czz z - cxz x - cyz y`` is 1 at the origin and falls to 0 where the
+    surface turns vertical. Between the closest point and the data nearest to it (the hidden
+    disc, where no point holds the fit) a body surface stays a gentle height field; z-terms
+    fitted to noise instead fold the surface there or open a hole in it (no real height).
+    Probed at the closest point and on two rings reaching out to the nearest point. (The data
+    themselves may legitimately reach a silhouette, D = 0: they are not probed.)
+    """
+    gap = float(np.sqrt(np.min((q[:, 0] - q_star[0]) ** 2 + (q[:, 1] - q_star[1]) ** 2)))
+    probe = q_star[:2] + gap * _PROBE_RING
+    return not _heights_folded(np.column_stack((probe, np.zeros(len(probe)))), coef).any()
+
+
+def _heights_folded(q: FloatArray, coef: FloatArray) -> FloatArray:
+    """Where the vertical through ``(x, y)`` misses the surface or meets it nearly edge-on."""
+    lin = 1.0 - coef[7] * q[:, 0] - coef[8] * q[:, 1]
+    p = paraboloid_height(q, coef)
+    disc = lin * lin - 4.0 * coef[6] * p
+    height = quadric_height(q, coef)
+    den = lin - 2.0 * coef[6] * height
+    return (disc < 0.0) | (den < _MIN_SHEET_DEN)
+
+
+def _surround(offsets: FloatArray, normal: FloatArray, bw: float) -> float:
+    """1 when the points surround the closest point, falling to 0 as they sit to one side of it.
+
+    From the widest empty angular sector (36 bins of 10°) around the normal within two
+    bandwidths: up to a quarter turn (a silhouette nearby) counts as surrounded, half a turn
+    (the closest point on the edge of the data) scores 2/3, a full turn 0.
+    """
+    close = offsets[np.einsum("ij,ij->i", offsets, offsets) < (2.0 * bw) ** 2]
+    if len(close) < 3:
+        return 0.0
+    tangent = close @ frame_from_unit_normal(normal)[:, :2]
+    bins = (np.arctan2(tangent[:, 1], tangent[:, 0]) + np.pi) * (_SECTORS / (2.0 * np.pi))
+    filled = np.bincount(np.minimum(bins.astype(np.int64), _SECTORS - 1), minlength=_SECTORS) > 0
+    if filled.all():
+        return 1.0
+    # Longest circular run of empty sectors.
+    empty = np.concatenate((~filled, ~filled)).astype(np.int8)
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], empty, [0]))))
+    widest = min(int((edges[1::2] - edges[::2]).max()), _SECTORS)
+    return float(np.clip((_SECTORS - widest) / (0.75 * _SECTORS), 0.0, 1.0))

@@ -1,0 +1,197 @@
+"""One camera's perception pipeline: stages A-E from a cloud or a depth frame to an estimate."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..camera import DepthFrame
+from ..errors import InputError
+from ..geometry.primitives import Primitive
+from ..validation import as_finite_scalar, as_unit_vector3, as_vector3
+from .abstraction import estimate_surface
+from .cluster import cluster_voxels
+from .config import PerceptionConfig
+from .crop import CropResult, crop_depth_frame, crop_points
+from .estimate import SurfaceEstimate
+from .reconstruct import SurfaceMemory
+from .timing import StageTimer
+from .voxel import voxel_downsample
+
+FloatArray = NDArray[np.float64]
+
+STAGES = ("crop", "voxel", "cluster", "rebuild", "abstract")
+
+
+class CameraPipeline:
+    """Stages A-E for one camera; keeps that camera's ICP memory between frames.
+
+    Parameters
+    ----------
+    config
+        All stage parameters; the shipped defaults are the tuned ones.
+    camera
+        Name carried into every :class:`SurfaceEstimate`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from hapticloud.core.perception import CameraPipeline, PerceptionConfig
+    >>> rng = np.random.default_rng(0)
+    >>> xy = rng.uniform(-0.12, 0.12, size=(20000, 2))
+    >>> wall = np.column_stack((xy, np.zeros(len(xy))))          # the plane z = 0
+    >>> pipe = CameraPipeline(PerceptionConfig())
+    >>> est = pipe.process(wall, hip=[0.0, 0.0, 0.06], camera_axis=[0.0, 0.0, -1.0], t=0.0)
+    >>> est.valid, bool(abs(est.d_proj([0.0, 0.0, 0.06], 0.04) - 0.02) < 1e-3)
+    (True, True)
+    """
+
+    def __init__(self, config: PerceptionConfig | None = None, camera: str = "camera") -> None:
+        self._config = PerceptionConfig() if config is None else config
+        if not isinstance(self._config, PerceptionConfig):
+            raise InputError(f"config: expected a PerceptionConfig, got {type(config).__name__}")
+        self.camera = str(camera)
+        self._memory = SurfaceMemory(self._config.reconstruction)
+        self._seq = 0
+
+    @property
+    def config(self) -> PerceptionConfig:
+        return self._config
+
+    def configure(self, config: PerceptionConfig) -> None:
+        """Use ``config`` from the next frame on (the memory restarts if its stage changed)."""
+        if not isinstance(config, PerceptionConfig):
+            raise InputError(f"config: expected a PerceptionConfig, got {type(config).__name__}")
+        if config.reconstruction != self._config.reconstruction:
+            self._memory = SurfaceMemory(config.reconstruction)
+        self._config = config
+
+    def reset(self) -> None:
+        """Forget the ICP memory (after a seek in a recording or a recalibration)."""
+        self._memory.reset()
+
+    # ----- entry points --------------------------------------------------------------------------
+    def process(
+        self,
+        points_world: ArrayLike,
+        hip: ArrayLike,
+        camera_axis: ArrayLike,
+        t: float = 0.0,
+        exclude: Sequence[Primitive] | None = (),
+    ) -> SurfaceEstimate:
+        """Estimate the surface closest to ``hip`` from a world-frame cloud.
+
+        Parameters
+        ----------
+        points_world
+            ``(N, 3)`` points in the world frame (m), float32 or float64 (a full frame of ~400k
+            points is fine: stage A crops it first). NaN/inf rows are dropped.
+        hip
+            ``(3,)`` haptic interaction point (m, world).
+        camera_axis
+            ``(3,)`` the camera's viewing direction (world); orients the normal towards the camera.
+        t
+            Frame time (s, monotonic).
+        exclude
+            Primitives (``Sphere``, ``Capsule``, ``Box``) of the robot and the guided arm in the
+            world frame; points inside them, grown by ``crop.exclude_margin_m``, are removed.
+
+        Returns
+        -------
+        SurfaceEstimate
+            ``valid`` False (with ``reason``) when the surface cannot be estimated; never NaN.
+
+        Raises
+        ------
+        InputError
+            (a ``ValueError``) naming the argument with a wrong shape, dtype or value.
+        """
+        h = as_vector3(hip, "hip")
+        axis = as_unit_vector3(camera_axis, "camera_axis")
+        t = as_finite_scalar(t, "t")
+        timer = StageTimer()
+        with timer.stage("crop"):
+            cropped = crop_points(points_world, h, exclude, self._config.crop)
+        return self._finish(cropped, h, axis, t, timer)
+
+    def process_depth(
+        self,
+        frame: DepthFrame,
+        hip: ArrayLike,
+        exclude: Sequence[Primitive] | None = (),
+    ) -> SurfaceEstimate:
+        """Estimate the surface closest to ``hip`` from one depth frame.
+
+        Stage A works in image space: the workspace sphere is projected into the image and only
+        that region is deprojected. The camera axis and time come from the frame.
+
+        Parameters
+        ----------
+        frame
+            Depth image (m; 0 or NaN invalid), intrinsics and ``pose_world_camera``.
+        hip, exclude
+            As in :meth:`process`.
+        """
+        if not isinstance(frame, DepthFrame):
+            raise InputError(f"frame: expected a DepthFrame, got {type(frame).__name__}")
+        h = as_vector3(hip, "hip")
+        t = as_finite_scalar(frame.t, "frame.t")
+        timer = StageTimer()
+        with timer.stage("crop"):
+            cropped = crop_depth_frame(frame, h, exclude, self._config.crop)
+        return self._finish(cropped, h, frame.axis_world, t, timer)
+
+    # ----- stages B-E ----------------------------------------------------------------------------
+    def _finish(
+        self, cropped: CropResult, h: FloatArray, axis: FloatArray, t: float, timer: StageTimer
+    ) -> SurfaceEstimate:
+        cfg = self._config
+        self._seq += 1
+        with timer.stage("voxel"):
+            # The grid is anchored on the world lattice (a voxel corner near the HIP), not at the
+            # HIP itself: a grid moving with the HIP resamples a still surface every frame and the
+            # ICP memory then follows the samples instead of the surface.
+            size = cfg.voxel.voxel_size_m
+            anchor = np.floor(h / size) * size
+            voxels = voxel_downsample(cropped.points, anchor, cfg.voxel)
+        with timer.stage("cluster"):
+            clusters = cluster_voxels(voxels, h, cfg.cluster)
+        with timer.stage("rebuild"):
+            rebuilt = self._memory.step(clusters.points, h, t)
+        with timer.stage("abstract"):
+            fit = estimate_surface(rebuilt.points, h, axis, cfg.abstraction)
+        stage_ms = dict(timer.ms)
+        stage_ms["total"] = timer.total_ms
+        extra = {
+            "method": fit.method or cfg.abstraction.method,
+            "quality": fit.quality,
+            "hip": h,
+            "n_points": int(rebuilt.points.shape[0]),
+            "shells": fit.shells,
+            "stage_ms": stage_ms,
+            "seq": self._seq,
+        }
+        if cfg.keep_points:
+            extra["points"] = clusters.points
+            extra["filled"] = rebuilt.filled
+        if not fit.valid:
+            reason = fit.reason
+            if cropped.n_kept == 0:
+                reason = "no points in the workspace sphere"
+            elif clusters.points.shape[0] == 0:
+                reason = "no cluster large enough"
+            return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
+        return SurfaceEstimate(
+            t=t, camera=self.camera, centroid=fit.centroid, normal=fit.normal, valid=True, **extra
+        )
+
+
+def frame_rate_bound_mps(config: PerceptionConfig, frame_period_s: float) -> float:
+    """Eq. 1: the largest surface speed along its normal the memory ring can follow (m/s)."""
+    if not (math.isfinite(frame_period_s) and frame_period_s > 0):
+        raise InputError(f"frame_period_s = {frame_period_s}: must be positive")
+    rec = config.reconstruction
+    return (rec.r_out_m - rec.r_in_m) / frame_period_s

@@ -1,0 +1,63 @@
+"""The simulator: analytic patient bodies, a room, and simulated D435 depth cameras.
+
+Everything here is deterministic given its inputs (noise is seeded by seed, camera name and time)
+and is what the ``simulated`` camera source, the tests and the perception benchmark render from.
+"""
+
+from .bodies import (
+    BODY_PARTS,
+    MESH_TOLERANCE_M,
+    Body,
+    BoxBody,
+    CapsuleBody,
+    CylinderBody,
+    EllipsoidBody,
+    SphereBody,
+    SurfacePoint,
+)
+from .depth_camera import RayHits, SimDepthCamera, decimated
+from .ellipsoid import closest_point_on_ellipsoid
+from .noise import DepthNoiseConfig, apply_depth_noise, frame_rng
+from .scenes import (
+    BenchScene,
+    HipSamples,
+    SimScene,
+    demo_scene,
+    end_effector,
+    paper_cameras,
+    perception_bench_scenes,
+    rotation_xyz,
+)
+from .world import MISS, OCCLUDER, GroundTruth, SimWorld, intersect_primitive
+
+__all__ = [
+    "BODY_PARTS",
+    "MESH_TOLERANCE_M",
+    "MISS",
+    "OCCLUDER",
+    "BenchScene",
+    "Body",
+    "BoxBody",
+    "CapsuleBody",
+    "CylinderBody",
+    "DepthNoiseConfig",
+    "EllipsoidBody",
+    "GroundTruth",
+    "HipSamples",
+    "RayHits",
+    "SimDepthCamera",
+    "SimScene",
+    "SimWorld",
+    "SphereBody",
+    "SurfacePoint",
+    "apply_depth_noise",
+    "closest_point_on_ellipsoid",
+    "decimated",
+    "demo_scene",
+    "end_effector",
+    "frame_rng",
+    "intersect_primitive",
+    "paper_cameras",
+    "perception_bench_scenes",
+    "rotation_xyz",
+]

@@ -1,0 +1,458 @@
+"""Analytic solids the simulated patient (and the room) are made of.
+
+Each body has a ``name``, an ISO/TS 15066 body ``part`` and a rigid translation over time,
+``offset_m + velocity_mps * t``; the shape parameters give the pose at ``t = 0`` without offset
+(its *rest* pose). Each answers three questions exactly in the world frame:
+
+* :meth:`Body.closest_point` -- the surface point nearest to a query (the HIP), the outward unit
+  normal there and the signed distance (negative inside);
+* :meth:`Body.intersect_rays` -- closed-form ray hits (used to check the meshes, and for tests);
+* :meth:`Body.mesh_arrays` -- an inscribed triangle mesh for Open3D ray casting.
+
+Example
+-------
+>>> head = SphereBody(name="head", part="skull_forehead", center=[0, 0, 1.25], radius_m=0.09)
+>>> sp = head.closest_point([0.2, 0, 1.25])
+>>> round(sp.distance_m, 6), sp.normal.tolist()
+(0.11, [1.0, 0.0, 0.0])
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import ClassVar, NamedTuple, Self
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import InputError
+from ..validation import as_finite_scalar, as_points, as_vector3
+from . import meshing, raycast
+from .ellipsoid import closest_point_on_ellipsoid, ellipsoid_normal
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.int64]
+
+#: ISO/TS 15066 body regions (Annex A), plus ``"background"`` for the room.
+BODY_PARTS: tuple[str, ...] = (
+    "skull_forehead",
+    "face",
+    "neck",
+    "back_shoulders",
+    "chest",
+    "belly",
+    "pelvis",
+    "upper_arm",
+    "forearm",
+    "hand",
+    "thigh",
+    "lower_leg",
+    "foot",
+    "background",
+)
+
+#: Default chord tolerance of the meshes (m): ray-cast depth within 0.05 mm up to 78 deg incidence.
+MESH_TOLERANCE_M = 1e-5
+
+_ZERO3 = np.zeros(3)
+_ZERO3.setflags(write=False)
+
+
+class SurfacePoint(NamedTuple):
+    """A closest surface point: ``point`` (3,) m, outward unit ``normal`` (3,), ``distance_m``."""
+
+    point: FloatArray
+    normal: FloatArray
+    distance_m: float
+
+
+def _frozen_vec(value: ArrayLike, name: str) -> FloatArray:
+    arr = np.array(as_vector3(value, name), dtype=np.float64)
+    arr.setflags(write=False)
+    return arr
+
+
+def _positive(value: object, name: str) -> float:
+    out = as_finite_scalar(value, name)
+    if out <= 0:
+        raise InputError(f"{name} = {out}: must be positive")
+    return out
+
+
+def _rotation(value: ArrayLike, name: str = "rotation") -> FloatArray:
+    rot = np.array(value, dtype=np.float64)
+    if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
+        raise InputError(f"{name}: expected a finite (3, 3) matrix, got shape {rot.shape}")
+    if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0:
+        raise InputError(f"{name}: must be a proper rotation matrix (orthonormal, det +1)")
+    # Re-orthonormalise so that a rotation given to 6 digits is exact to the last bit.
+    u, _, vt = np.linalg.svd(rot)
+    rot = u @ vt
+    rot.setflags(write=False)
+    return rot
+
+
+def _any_perpendicular(axis: FloatArray) -> FloatArray:
+    return meshing.frame_from_axis(axis)[:, 0]
+
+
+_MESH_CACHE: OrderedDict[tuple, tuple[FloatArray, IndexArray]] = OrderedDict()
+_MESH_CACHE_SIZE = 64
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Body:
+    """Base of the analytic bodies (use a subclass). Positions in m, velocity in m/s."""
+
+    #: False when the mesh is the exact surface (flat faces only), so hits need no refinement.
+    curved: ClassVar[bool] = True
+
+    name: str
+    part: str
+    velocity_mps: FloatArray = field(default_factory=lambda: _ZERO3)
+    offset_m: FloatArray = field(default_factory=lambda: _ZERO3)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise InputError(f"name: expected a non-empty string, got {self.name!r}")
+        if self.part not in BODY_PARTS:
+            raise InputError(f"part = {self.part!r}: must be one of {', '.join(BODY_PARTS)}")
+        object.__setattr__(self, "velocity_mps", _frozen_vec(self.velocity_mps, "velocity_mps"))
+        object.__setattr__(self, "offset_m", _frozen_vec(self.offset_m, "offset_m"))
+
+    # ----- motion ------------------------------------------------------------------------------
+    def displacement(self, t: float = 0.0) -> FloatArray:
+        """Translation of the body from its rest pose at time ``t`` (s), m."""
+        return self.offset_m + self.velocity_mps * as_finite_scalar(t, "t")
+
+    def moved(self, offset: ArrayLike) -> Self:
+        """A copy translated by ``offset`` (m) more; the shape and its mesh stay shared."""
+        return dataclasses.replace(self, offset_m=self.offset_m + as_vector3(offset, "offset"))
+
+    @property
+    def is_static(self) -> bool:
+        """True when the body never moves from its rest pose."""
+        return not (np.any(self.offset_m) or np.any(self.velocity_mps))
+
+    # ----- queries in the world frame ----------------------------------------------------------
+    def closest_point(self, hip: ArrayLike, t: float = 0.0) -> SurfacePoint:
+        """Closest surface point to ``hip`` (m) at time ``t`` (s), exactly.
+
+        Returns
+        -------
+        SurfacePoint
+            ``(point, normal, distance_m)``: the surface point, the outward unit surface normal
+            there, and the signed distance from the surface to ``hip`` (negative inside).
+            On an edge of a box or cylinder, ``normal`` is the direction from the point to an
+            outside ``hip``.
+        """
+        shift = self.displacement(t)
+        point, normal, dist = self._closest_rest(as_vector3(hip, "hip") - shift)
+        return SurfacePoint(point + shift, normal, float(dist))
+
+    def intersect_rays(
+        self, origins: ArrayLike, directions: ArrayLike, t: float = 0.0
+    ) -> tuple[FloatArray, FloatArray]:
+        """Closed-form hits ``(t_hit (M,), normals (M, 3))`` of rays at time ``t`` (s).
+
+        ``t_hit`` is in units of each direction's length (``inf`` on a miss).
+        """
+        o = np.asarray(origins, dtype=np.float64)
+        o = as_vector3(o, "origins") if o.shape == (3,) else as_points(o, "origins")
+        return self.intersect_rays_rest(o - self.displacement(t), directions)
+
+    def intersect_rays_rest(
+        self, origins: ArrayLike, directions: ArrayLike
+    ) -> tuple[FloatArray, FloatArray]:
+        """As :meth:`intersect_rays` with the body in its rest pose (no offset, no motion)."""
+        return self._intersect_rest(
+            np.asarray(origins, dtype=np.float64), as_points(directions, "directions")
+        )
+
+    def mesh_arrays(
+        self, t: float = 0.0, tolerance_m: float = MESH_TOLERANCE_M
+    ) -> tuple[FloatArray, IndexArray]:
+        """Inscribed mesh at time ``t``: vertices ``(V, 3)`` m and triangles ``(F, 3)``."""
+        v, f = self.rest_mesh_arrays(tolerance_m)
+        return v + self.displacement(t), f
+
+    def mesh(
+        self, t: float = 0.0, tolerance_m: float = MESH_TOLERANCE_M
+    ) -> o3d.geometry.TriangleMesh:
+        """The inscribed mesh at time ``t`` as an Open3D legacy mesh (with vertex normals)."""
+        v, f = self.mesh_arrays(t, tolerance_m)
+        mesh = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(f.astype(np.int32))
+        )
+        mesh.compute_vertex_normals()
+        return mesh
+
+    def rest_mesh_arrays(
+        self, tolerance_m: float = MESH_TOLERANCE_M
+    ) -> tuple[FloatArray, IndexArray]:
+        """The mesh in the rest pose, cached by shape and tolerance (read-only arrays)."""
+        tol = _positive(tolerance_m, "tolerance_m")
+        key = (self.shape_key(), tol)
+        cached = _MESH_CACHE.get(key)
+        if cached is None:
+            v, f = self._mesh_rest(tol)
+            v.setflags(write=False)
+            f.setflags(write=False)
+            cached = _MESH_CACHE[key] = (v, f)
+            if len(_MESH_CACHE) > _MESH_CACHE_SIZE:
+                _MESH_CACHE.popitem(last=False)
+        else:
+            _MESH_CACHE.move_to_end(key)
+        return cached
+
+    def bounds(self, t: float = 0.0) -> tuple[FloatArray, FloatArray]:
+        """Axis-aligned bounding box ``(lo, hi)`` at time ``t``, m."""
+        lo, hi = self._bounds_rest()
+        shift = self.displacement(t)
+        return lo + shift, hi + shift
+
+    # ----- per shape ---------------------------------------------------------------------------
+    def shape_key(self) -> tuple:
+        """Hashable identity of the rest shape (type and exact parameters)."""
+        raise NotImplementedError
+
+    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        raise NotImplementedError
+
+    def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        raise NotImplementedError
+
+    def _mesh_rest(self, tolerance_m: float) -> tuple[FloatArray, IndexArray]:
+        raise NotImplementedError
+
+    def _bounds_rest(self) -> tuple[FloatArray, FloatArray]:
+        raise NotImplementedError
+
+
+def _key(*values: object) -> tuple:
+    return tuple(v.tobytes() if isinstance(v, np.ndarray) else v for v in values)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class SphereBody(Body):
+    """Sphere: ``center`` (3,) m, ``radius_m``."""
+
+    center: FloatArray
+    radius_m: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "center", _frozen_vec(self.center, "center"))
+        object.__setattr__(self, "radius_m", _positive(self.radius_m, "radius_m"))
+
+    def shape_key(self) -> tuple:
+        return _key("sphere", self.center, self.radius_m)
+
+    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        v = p - self.center
+        r = float(np.linalg.norm(v))
+        # At the centre every direction is nearest; +z is as good as any.
+        n = v / r if r > 0 else np.array([0.0, 0.0, 1.0])
+        return self.center + self.radius_m * n, n, r - self.radius_m
+
+    def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return raycast.ray_sphere(o, d, self.center, self.radius_m)
+
+    def _mesh_rest(self, tolerance_m: float) -> tuple[FloatArray, IndexArray]:
+        return meshing.sphere_mesh(self.center, self.radius_m, tolerance_m)
+
+    def _bounds_rest(self) -> tuple[FloatArray, FloatArray]:
+        return self.center - self.radius_m, self.center + self.radius_m
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class EllipsoidBody(Body):
+    """Ellipsoid: ``center``, ``semi_axes_m`` (3,) along ``rotation``'s columns (own->world)."""
+
+    center: FloatArray
+    semi_axes_m: FloatArray
+    rotation: FloatArray = field(default_factory=lambda: np.eye(3))
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "center", _frozen_vec(self.center, "center"))
+        axes = _frozen_vec(self.semi_axes_m, "semi_axes_m")
+        if np.any(axes <= 0):
+            raise InputError(f"semi_axes_m = {axes.tolist()}: must be positive")
+        object.__setattr__(self, "semi_axes_m", axes)
+        object.__setattr__(self, "rotation", _rotation(self.rotation))
+
+    def shape_key(self) -> tuple:
+        return _key("ellipsoid", self.center, self.semi_axes_m, self.rotation)
+
+    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        q = (p - self.center) @ self.rotation
+        x = closest_point_on_ellipsoid(self.semi_axes_m, q)
+        n_local = ellipsoid_normal(self.semi_axes_m, x)
+        dist = float(np.linalg.norm(q - x))
+        if np.sum((q / self.semi_axes_m) ** 2) < 1.0:
+            dist = -dist
+        return self.center + self.rotation @ x, self.rotation @ n_local, dist
+
+    def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return raycast.ray_ellipsoid(o, d, self.center, self.semi_axes_m, self.rotation)
+
+    def _mesh_rest(self, tolerance_m: float) -> tuple[FloatArray, IndexArray]:
+        return meshing.ellipsoid_mesh(self.center, self.semi_axes_m, self.rotation, tolerance_m)
+
+    def _bounds_rest(self) -> tuple[FloatArray, FloatArray]:
+        reach = np.sqrt(((self.rotation * self.semi_axes_m) ** 2).sum(axis=1))
+        return self.center - reach, self.center + reach
+
+
+def _axis_frame(a: FloatArray, b: FloatArray) -> tuple[FloatArray, float]:
+    ab = b - a
+    length = float(np.linalg.norm(ab))
+    return (ab / length if length > 0 else np.array([0.0, 0.0, 1.0])), length
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class CapsuleBody(Body):
+    """Capsule: segment ``a``-``b`` (m) swept by a ball of ``radius_m``."""
+
+    a: FloatArray
+    b: FloatArray
+    radius_m: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "a", _frozen_vec(self.a, "a"))
+        object.__setattr__(self, "b", _frozen_vec(self.b, "b"))
+        object.__setattr__(self, "radius_m", _positive(self.radius_m, "radius_m"))
+
+    def shape_key(self) -> tuple:
+        return _key("capsule", self.a, self.b, self.radius_m)
+
+    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        axis, length = _axis_frame(self.a, self.b)
+        s = float(np.clip((p - self.a) @ axis, 0.0, length))
+        on_axis = self.a + s * axis
+        v = p - on_axis
+        r = float(np.linalg.norm(v))
+        n = v / r if r > 0 else _any_perpendicular(axis)
+        return on_axis + self.radius_m * n, n, r - self.radius_m
+
+    def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return raycast.ray_capsule(o, d, self.a, self.b, self.radius_m)
+
+    def _mesh_rest(self, tolerance_m: float) -> tuple[FloatArray, IndexArray]:
+        return meshing.capsule_mesh(self.a, self.b, self.radius_m, tolerance_m)
+
+    def _bounds_rest(self) -> tuple[FloatArray, FloatArray]:
+        r = self.radius_m
+        return np.minimum(self.a, self.b) - r, np.maximum(self.a, self.b) + r
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class CylinderBody(Body):
+    """Finite solid cylinder with flat caps at ``a`` and ``b`` (m), ``radius_m``."""
+
+    a: FloatArray
+    b: FloatArray
+    radius_m: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "a", _frozen_vec(self.a, "a"))
+        object.__setattr__(self, "b", _frozen_vec(self.b, "b"))
+        object.__setattr__(self, "radius_m", _positive(self.radius_m, "radius_m"))
+        if not np.linalg.norm(self.b - self.a) > 0:
+            raise InputError("b: must differ from a (a cylinder needs a length)")
+
+    def shape_key(self) -> tuple:
+        return _key("cylinder", self.a, self.b, self.radius_m)
+
+    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        axis, length = _axis_frame(self.a, self.b)
+        mid, half = 0.5 * (self.a + self.b), 0.5 * length
+        h = float((p - mid) @ axis)
+        w = (p - mid) - h * axis
+        rho = float(np.linalg.norm(w))
+        radial = w / rho if rho > 0 else _any_perpendicular(axis)
+        side = 1.0 if h >= 0 else -1.0
+        d_r, d_h = rho - self.radius_m, abs(h) - half
+        if d_r <= 0 and d_h <= 0:  # inside: leave through the nearer of side and cap
+            if d_r >= d_h:
+                return mid + h * axis + self.radius_m * radial, radial, d_r
+            return mid + side * half * axis + w, side * axis, d_h
+        if d_h <= 0:
+            return mid + h * axis + self.radius_m * radial, radial, d_r
+        if d_r <= 0:
+            return mid + side * half * axis + w, side * axis, d_h
+        rim = mid + side * half * axis + self.radius_m * radial
+        dist = float(np.hypot(d_r, d_h))
+        return rim, (p - rim) / dist, dist
+
+    def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return raycast.ray_cylinder(o, d, self.a, self.b, self.radius_m)
+
+    def _mesh_rest(self, tolerance_m: float) -> tuple[FloatArray, IndexArray]:
+        return meshing.cylinder_mesh(self.a, self.b, self.radius_m, tolerance_m)
+
+    def _bounds_rest(self) -> tuple[FloatArray, FloatArray]:
+        axis, _ = _axis_frame(self.a, self.b)
+        reach = self.radius_m * np.sqrt(np.clip(1.0 - axis * axis, 0.0, 1.0))
+        return np.minimum(self.a, self.b) - reach, np.maximum(self.a, self.b) + reach
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class BoxBody(Body):
+    """Oriented box: ``center``, ``half_extents_m`` (3,), ``rotation`` (own->world).
+
+    A thin box stands for a plane of finite extent (a torso front, a wall).
+    """
+
+    curved: ClassVar[bool] = False
+
+    center: FloatArray
+    half_extents_m: FloatArray
+    rotation: FloatArray = field(default_factory=lambda: np.eye(3))
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "center", _frozen_vec(self.center, "center"))
+        half = _frozen_vec(self.half_extents_m, "half_extents_m")
+        if np.any(half <= 0):
+            raise InputError(f"half_extents_m = {half.tolist()}: must be positive")
+        object.__setattr__(self, "half_extents_m", half)
+        object.__setattr__(self, "rotation", _rotation(self.rotation))
+
+    def shape_key(self) -> tuple:
+        return _key("box", self.center, self.half_extents_m, self.rotation)
+
+    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        q = (p - self.center) @ self.rotation
+        half = self.half_extents_m
+        excess = np.abs(q) - half
+        sign = np.where(q < 0, -1.0, 1.0)
+        if np.any(excess > 0):
+            x = np.clip(q, -half, half)
+            gap = q - x
+            dist = float(np.linalg.norm(gap))
+            n_local = gap / dist
+        else:  # inside or on the surface: the nearest face
+            i = int(np.argmax(excess))
+            x = q.copy()
+            x[i] = sign[i] * half[i]
+            n_local = np.zeros(3)
+            n_local[i] = sign[i]
+            dist = float(excess[i])
+        return self.center + self.rotation @ x, self.rotation @ n_local, dist
+
+    def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return raycast.ray_box(o, d, self.center, self.half_extents_m, self.rotation)
+
+    def _mesh_rest(self, tolerance_m: float) -> tuple[FloatArray, IndexArray]:
+        return meshing.box_mesh(self.center, self.half_extents_m, self.rotation)
+
+    def _bounds_rest(self) -> tuple[FloatArray, FloatArray]:
+        reach = np.abs(self.rotation) @ self.half_extents_m
+        return self.center - reach, self.center + reach

@@ -1,0 +1,1 @@
+"""Studies behind `hapticloud bench`: deterministic runs against the simulator's ground truth."""
