@@ -5,16 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from hapticloud.core.errors import InputError
-from hapticloud.core.geometry.fits import (
+from hapticloud.core.geometry.fits import circle3d, plane3d, sphere3d
+from hapticloud.core.geometry.quadric import (
     NestedQuadricLSQ,
     QuadricPatch,
-    circle3d,
     local_quadric_closest,
-    plane3d,
     quadric_height,
     quadric_matrices,
     quadric_patch,
-    sphere3d,
 )
 from hapticloud.core.geometry.rotations import (
     frame_from_unit_normal,

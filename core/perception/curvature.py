@@ -34,9 +34,9 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from ..geometry.fits import (
+from ..geometry.fits import RANK_TOL
+from ..geometry.quadric import (
     QUADRIC_MODELS,
-    RANK_TOL,
     NestedQuadricLSQ,
     local_quadric_closest,
     local_quadric_distance,
