@@ -36,7 +36,9 @@ fi
 [ -n "$PYTHON" ] || { echo "bootstrap: need Python 3.11 or 3.12" >&2; exit 2; }
 
 stamp=".venv/.hapticloud-installed"
-want="$(cat pyproject.toml setup.py requirements.lock 2>/dev/null | sha256sum | cut -c1-16)"
+inputs=(pyproject.toml setup.py)
+[ -f requirements.lock ] && inputs+=(requirements.lock)
+want="$(cat "${inputs[@]}" | sha256sum | cut -c1-16)"
 if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
