@@ -20,14 +20,15 @@ from hapticloud.core.errors import HapticloudError  # noqa: E402
 
 EXIT_BAD_INPUT = 2
 # Registration order is the order --help lists them.
-COMMANDS = ("demo", "bench")
-DEFAULT_COMMAND = ["demo"]
+COMMANDS = ("app", "demo", "run", "bench")
+DEFAULT_COMMAND = ["app"]
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hapticloud",
-        description="Haptic rendering on live point clouds. With no command: the live demo.",
+        description="Haptic rendering on live point clouds. With no command: the desktop app "
+        "on the simulated demo scene ('hapticloud demo' prints the demo as text).",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:

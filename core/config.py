@@ -217,12 +217,13 @@ class StageConfig:
             if not rest:
                 raise ConfigError(f"{dotted}: is a table; name one of its keys")
             try:
-                return dataclasses.replace(
-                    self, **{head: getattr(self, head).replace_path(rest, value)}
-                )
+                sub = getattr(self, head).replace_path(rest, value)
             except ConfigError as err:
                 msg = str(err)
                 raise ConfigError(msg if msg.startswith(head + ".") else f"{head}.{msg}") from None
+            # A rule spanning several tables is this level's own check(): its message already
+            # names the fields from here, so it is not prefixed with the sub-table.
+            return dataclasses.replace(self, **{head: sub})
         if rest:
             raise ConfigError(f"{dotted}: '{head}' is a parameter, not a table")
         return dataclasses.replace(self, **{head: value})

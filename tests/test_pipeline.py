@@ -85,8 +85,11 @@ def test_bad_arguments_raise_value_error_naming_them(kwargs: dict, name: str) ->
 
 
 def test_config_cross_check_names_both_fields() -> None:
-    with pytest.raises(ConfigError, match=r"abstraction.r_out_m = 0.3: must not exceed crop"):
+    with pytest.raises(ConfigError, match=r"^abstraction.r_out_m = 0.3: must not exceed crop"):
         PerceptionConfig().replace_path("abstraction.r_out_m", 0.3)
+    # Changed from the other table: the message still names the fields from the top.
+    with pytest.raises(ConfigError, match=r"^abstraction.r_out_m = 0.15: must not exceed crop"):
+        PerceptionConfig().replace_path("crop.workspace_radius_m", 0.1)
 
 
 @pytest.mark.parametrize(

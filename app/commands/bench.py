@@ -7,7 +7,7 @@ import sys
 
 from hapticloud.core.errors import ConfigError
 
-from . import add_set_option, overrides, positive_int
+from . import add_set_option, overrides, positive_float, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -16,7 +16,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="speed/accuracy studies",
         description="Speed and accuracy studies. 'perception': accuracy against ground truth and "
         "latency per stage for the curvature-aware estimator, the paper's and a nearest-point "
-        "baseline over the benchmark scenes.",
+        "baseline over the benchmark scenes. 'loop': the 800 Hz control tick timed in a closed "
+        "loop (median, p99, deadline misses).",
     )
     studies = parser.add_subparsers(dest="study", metavar="STUDY", required=True)
     perception = studies.add_parser(
@@ -32,6 +33,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_set_option(perception, "perception.voxel.voxel_size_m=0.004")
     perception.set_defaults(handler=run_perception)
+    loop = studies.add_parser(
+        "loop",
+        help="the 800 Hz control tick: median and p99 time, deadline misses",
+        description="Times the control tick (fusion sample, robot dynamics, haptic constraints, "
+        "hierarchical controller; no bus I/O) in a closed-loop simulation of a scene, cameras as "
+        "oracles. A miss is a tick longer than the 1250 us period.",
+    )
+    loop.add_argument(
+        "--duration", type=positive_float, default=15.0, metavar="S", help="simulated s (15)"
+    )
+    loop.add_argument("--scene", default="impacts", help="scene file or shipped name (impacts)")
+    loop.add_argument("--json", action="store_true", help="print one JSON object")
+    loop.add_argument(
+        "--rendered", action="store_true", help="keep the scene's rendered cameras (slower run)"
+    )
+    add_set_option(loop, "haptics.force_enabled=false")
+    loop.set_defaults(handler=run_loop)
 
 
 def run_perception(args: argparse.Namespace) -> int:
@@ -45,4 +63,17 @@ def run_perception(args: argparse.Namespace) -> int:
         json_out=args.json,
         knobs=args.knobs,
         out=sys.stdout,
+    )
+
+
+def run_loop(args: argparse.Namespace) -> int:
+    from hapticloud.core.studies import loop_bench
+
+    return loop_bench.main(
+        args.scene,
+        args.duration,
+        overrides(args.set),
+        args.json,
+        sys.stdout,
+        oracle=not args.rendered,
     )

@@ -1,0 +1,169 @@
+"""``hapticloud app [SCENE]``: the desktop app, live on a simulated scene (the default command)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import re
+import sys
+from pathlib import Path
+
+from hapticloud.core.errors import ConfigError
+
+from . import add_set_option, overrides, positive_float
+
+DEFAULT_SIZE = (1440, 900)
+
+
+def window_size(text: str) -> tuple[int, int]:
+    """argparse type: ``WIDTHxHEIGHT`` in pixels."""
+    match = re.fullmatch(r"(\d+)x(\d+)", text.strip())
+    if not match:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1280x800, got {text!r}")
+    w, h = int(match[1]), int(match[2])
+    if not (640 <= w <= 7680 and 480 <= h <= 4320):
+        raise argparse.ArgumentTypeError(f"{text}: must be between 640x480 and 7680x4320")
+    return w, h
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser(
+        "app",
+        help="the desktop app: live 3D view, parameters, plots (default command)",
+        description="Opens the main window on a simulated scene running live: the perception "
+        "pipeline's clouds, shells and estimates in 3D, the generated parameter panel, live "
+        "plots and the emergency stop (Esc or Space).",
+    )
+    parser.add_argument(
+        "scene",
+        nargs="?",
+        default="demo",
+        help="built-in scene (default: demo, the seated patient reaching to the face)",
+    )
+    parser.add_argument(
+        "--screenshot", metavar="PATH", help="save the window as PNG after --exit-after seconds"
+    )
+    parser.add_argument(
+        "--exit-after",
+        metavar="S",
+        type=positive_float,
+        help="quit after S seconds (default 3 with --screenshot)",
+    )
+    parser.add_argument(
+        "--size",
+        metavar="WxH",
+        type=window_size,
+        default=DEFAULT_SIZE,
+        help="window size in pixels (default {}x{})".format(*DEFAULT_SIZE),
+    )
+    parser.add_argument("--preset", metavar="FILE", help="start with this parameter preset (TOML)")
+    parser.add_argument(
+        "--view",
+        choices=("follow", "overview", "front", "side"),
+        default="follow",
+        help="3D camera preset (default: follow, the HIP as it moves)",
+    )
+    parser.add_argument(
+        "--color-by",
+        choices=("camera", "stage"),
+        default="camera",
+        help="colour the points by camera or by pipeline stage (default: camera)",
+    )
+    add_set_option(parser, "perception.voxel.voxel_size_m=0.004")
+    parser.add_argument(
+        "--decimation",
+        type=int,
+        choices=(1, 2, 4),
+        default=1,
+        help="divide the simulated cameras' resolution (1: 848x480 as the paper; 2 runs in real "
+        "time on slow machines)",
+    )
+    parser.add_argument(
+        "--speed", type=positive_float, default=1.0, help="simulation time per wall time (1)"
+    )
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from hapticloud.app.live_source import SCENES, LiveConfig, SimSettings
+
+    if args.scene not in SCENES:
+        hint = " (scene files are not supported yet)" if args.scene.endswith(".toml") else ""
+        raise ConfigError(
+            f"scene {args.scene!r}: unknown{hint}; built-in scenes: {', '.join(SCENES)}"
+        )
+    config = LiveConfig.load(args.preset) if args.preset else LiveConfig()
+    try:
+        config = config.with_overrides(overrides(args.set))
+    except ConfigError as err:
+        raise ConfigError(f"--set {err}") from None
+    settings = SimSettings(scene=args.scene, speed=args.speed, decimation=args.decimation)
+    exit_after = args.exit_after
+    if args.screenshot and exit_after is None:
+        exit_after = 3.0
+    shot = Path(args.screenshot) if args.screenshot else None
+    if shot is not None and not shot.parent.exists():
+        raise ConfigError(f"--screenshot {shot}: folder {shot.parent} does not exist")
+
+    from hapticloud.app.screenshot import has_display, virtual_display
+
+    display: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
+    if not has_display():
+        if shot is None and exit_after is None:
+            raise ConfigError(
+                "no display (DISPLAY/WAYLAND_DISPLAY unset or Qt set to offscreen); "
+                "run under a desktop, or with --screenshot PATH to render on a virtual display"
+            )
+        display = virtual_display()
+    with display:
+        return _run_window(settings, config, args, exit_after, shot)
+
+
+def _run_window(
+    settings: object,
+    config: object,
+    args: argparse.Namespace,
+    exit_after: float | None,
+    shot: Path | None,
+) -> int:
+    from hapticloud.app.live_source import LiveSource
+    from hapticloud.app.main_window import MainWindow
+    from hapticloud.app.screenshot import save_window
+    from PyQt6 import QtCore, QtWidgets
+
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
+    app.setApplicationName("hapticloud")
+    window = MainWindow(
+        lambda cfg: LiveSource(settings, cfg),  # type: ignore[arg-type]
+        config,  # type: ignore[arg-type]
+        title=settings.scene,  # type: ignore[attr-defined]
+    )
+    window.controls.color_mode.setCurrentText(args.color_by)
+    window.controls.preset_actions[args.view].trigger()
+    window.resize(*args.size)
+    window.show()
+    result = {"code": 0}
+
+    def finish() -> None:
+        if shot is not None:
+            try:
+                path = save_window(window, shot)
+                print(f"screenshot: {path}", flush=True)
+            except OSError as err:
+                print(f"hapticloud: error: {err}", file=sys.stderr)
+                result["code"] = 2
+        window.close()
+        app.quit()
+
+    if exit_after is not None:
+        QtCore.QTimer.singleShot(round(1000 * exit_after), finish)
+    app.exec()
+    window.shutdown()
+    # Destroy Qt's objects now, while the display still exists: a virtual display is stopped
+    # right after this returns, and Qt talking to a vanished X server aborts the process.
+    window.deleteLater()
+    app.processEvents()
+    from PyQt6 import sip
+
+    sip.delete(app)
+    return result["code"]

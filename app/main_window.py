@@ -1,0 +1,373 @@
+"""The main window: assembles the 3D view, the parameter panel, the live plots and the status bar.
+
+The window holds no state of its own beyond "which snapshot did I show last". A
+:class:`QtCore.QTimer` at display rate pulls the newest snapshot from the source and hands it to
+each view; a snapshot whose ``seq`` was already shown is dropped (the source may publish faster
+or slower than the display). Parameter changes go to the source as built (validated) configs.
+
+The emergency stop is an application-wide event filter, so Esc and Space stop the source whatever
+widget has focus, dialogs included, before that widget sees the key. One exception keeps typing
+possible: Space in a free-text field (a file name in a dialog) types a space; Esc always stops.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+
+from PyQt6 import QtCore, QtGui, QtWidgets
+
+from .live_plots import LivePlots
+from .live_source import LiveConfig, Snapshot, SnapshotSource, SourceState
+from .param_panel import ParamPanel
+from .scene_view import CAMERA_PRESETS, COLOR_MODES, LAYERS, SceneView
+from .status import StatusPanel
+
+#: How often the window polls the source for a new snapshot (ms): up to ~60 Hz; a paint happens
+#: only when there is a new snapshot.
+POLL_MS = 15
+#: The plots are redrawn at most this often (s). Every widget repaint in a window holding an
+#: OpenGL widget recomposes the whole window (in software GL here): plots at 10 Hz read the same
+#: as at 30 Hz and leave that time to the 3D view.
+PLOT_PERIOD_S = 0.1
+ESTOP_KEYS = (QtCore.Qt.Key.Key_Escape, QtCore.Qt.Key.Key_Space)
+
+SourceFactory = Callable[[LiveConfig], SnapshotSource]
+
+
+def _is_text_entry(obj: QtCore.QObject) -> bool:
+    """True for a free-text field, where Space must type a space."""
+    if isinstance(obj, QtWidgets.QTextEdit | QtWidgets.QPlainTextEdit):
+        return True
+    if not isinstance(obj, QtWidgets.QLineEdit):
+        return False
+    parent = obj.parent()
+    numeric = isinstance(parent, QtWidgets.QAbstractSpinBox) or type(obj).__name__ == "SliderLabel"
+    return not numeric
+
+
+class EmergencyStopFilter(QtCore.QObject):
+    """Application-wide: Esc (anywhere) and Space (anywhere but a text field) call ``trigger``.
+
+    The key is swallowed, so it does not also toggle the focused check box or close a dialog.
+    """
+
+    def __init__(self, trigger: Callable[[str], None], parent: QtCore.QObject | None = None):
+        super().__init__(parent)
+        self._trigger = trigger
+
+    def eventFilter(self, obj: QtCore.QObject, event: QtCore.QEvent) -> bool:  # noqa: N802
+        kind = event.type()
+        if kind not in (QtCore.QEvent.Type.KeyPress, QtCore.QEvent.Type.ShortcutOverride):
+            return False
+        assert isinstance(event, QtGui.QKeyEvent)
+        if event.modifiers() & ~QtCore.Qt.KeyboardModifier.KeypadModifier:
+            return False
+        key = event.key()
+        if key not in ESTOP_KEYS:
+            return False
+        if key == QtCore.Qt.Key.Key_Space and _is_text_entry(obj):
+            return False
+        if kind == QtCore.QEvent.Type.KeyPress and not event.isAutoRepeat():
+            name = "Esc" if key == QtCore.Qt.Key.Key_Escape else "Space"
+            self._trigger(f"emergency stop (key {name})")
+        event.accept()
+        return True
+
+
+class ViewControls(QtWidgets.QToolBar):
+    """Colour mode, layers, camera presets and the legend of the 3D view."""
+
+    def __init__(self, view: SceneView, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__("View", parent)
+        self.view = view
+        self.setMovable(False)
+        self.setIconSize(QtCore.QSize(16, 16))
+
+        self.addWidget(QtWidgets.QLabel(" colour by ", self))
+        self.color_mode = QtWidgets.QComboBox(self)
+        self.color_mode.addItems(COLOR_MODES)
+        self.color_mode.setCurrentText(view.color_mode)
+        self.color_mode.setToolTip(
+            "camera: each camera's points in its colour; stage: kept, "
+            "filled from the ICP memory, cropped"
+        )
+        self.color_mode.currentTextChanged.connect(self._set_mode)
+        self.addWidget(self.color_mode)
+
+        layers = QtWidgets.QToolButton(self)
+        layers.setText("layers")
+        layers.setPopupMode(QtWidgets.QToolButton.ToolButtonPopupMode.InstantPopup)
+        menu = QtWidgets.QMenu(layers)
+        self.layer_actions: dict[str, QtGui.QAction] = {}
+        for layer in LAYERS:
+            action = menu.addAction(layer.label)
+            action.setCheckable(True)
+            action.setChecked(view.layer_visible(layer.key))
+            action.toggled.connect(lambda on, key=layer.key: self._set_layer(key, on))
+            self.layer_actions[layer.key] = action
+        layers.setMenu(menu)
+        self.addWidget(layers)
+        self.addSeparator()
+
+        self.addWidget(QtWidgets.QLabel(" camera ", self))
+        group = QtGui.QActionGroup(self)
+        self.preset_actions: dict[str, QtGui.QAction] = {}
+        for preset, label in CAMERA_PRESETS.items():
+            action = self.addAction(label)
+            action.setCheckable(True)
+            action.setChecked(preset == view.camera_preset)
+            action.triggered.connect(lambda _=False, p=preset: view.set_camera_preset(p))
+            group.addAction(action)
+            self.preset_actions[preset] = action
+        # The legend sits under the view (the window adds it): in the tool bar it would be the
+        # first thing cut off at 1280 px.
+        self.legend = QtWidgets.QLabel(parent)
+        self.legend.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        self.legend.setContentsMargins(8, 2, 8, 2)
+        self.update_legend()
+
+    def _set_mode(self, mode: str) -> None:
+        self.view.set_color_mode(mode)
+        self.update_legend()
+
+    def _set_layer(self, key: str, on: bool) -> None:
+        self.view.set_layer_visible(key, on)
+        self.update_legend()
+
+    def update_legend(self) -> None:
+        items = self.view.legend()
+        self.legend.setText(
+            "&nbsp;".join(
+                f"<span style='color:{colour}; font-size:14px'>●</span>&nbsp;{label}&nbsp;"
+                for colour, label in items
+            )
+        )
+
+
+class MainWindow(QtWidgets.QMainWindow):
+    """The live view: 3D scene, parameters, plots, status, emergency stop.
+
+    Parameters
+    ----------
+    make_source
+        Builds a (not yet started) source for a configuration; called at start and on restart.
+    config
+        Initial parameters.
+    title
+        Shown in the title bar (the scene's name).
+    """
+
+    def __init__(
+        self,
+        make_source: SourceFactory,
+        config: LiveConfig | None = None,
+        title: str = "demo",
+    ) -> None:
+        super().__init__()
+        self.setWindowTitle(f"hapticloud — {title}")
+        self._make_source = make_source
+        config = LiveConfig() if config is None else config
+
+        self.view = SceneView(self)
+        self.controls = ViewControls(self.view, self)
+        central = QtWidgets.QWidget(self)
+        column = QtWidgets.QVBoxLayout(central)
+        column.setContentsMargins(0, 0, 0, 0)
+        column.setSpacing(0)
+        column.addWidget(self.controls)
+        column.addWidget(self.view, 1)
+        column.addWidget(self.controls.legend)
+        self.setCentralWidget(central)
+
+        self.panel = ParamPanel(config, self)
+        self.panel.config_changed.connect(self._apply_config)
+        self.panel.refused.connect(self._show_refusal)
+        self.plots = LivePlots(self)
+        self._dock("Parameters", self.panel, QtCore.Qt.DockWidgetArea.RightDockWidgetArea)
+        self._dock("Live plots", self.plots, QtCore.Qt.DockWidgetArea.BottomDockWidgetArea)
+        self.resizeDocks(
+            [self.findChild(QtWidgets.QDockWidget, "Parameters")],
+            [420],
+            QtCore.Qt.Orientation.Horizontal,
+        )
+        self.resizeDocks(
+            [self.findChild(QtWidgets.QDockWidget, "Live plots")],
+            [210],
+            QtCore.Qt.Orientation.Vertical,
+        )
+
+        self.status = StatusPanel(self.statusBar())
+        self._build_toolbar()
+        self.setMinimumSize(1024, 700)
+
+        self._stop_filter = EmergencyStopFilter(self.emergency_stop, self)
+        app = QtWidgets.QApplication.instance()
+        assert app is not None
+        app.installEventFilter(self._stop_filter)
+
+        self._closed = False
+        self._plotted = 0.0
+        self._shown_seq = -1
+        self.shown: Snapshot | None = None
+        self._paints: deque[float] = deque(maxlen=61)
+        self.view.plotter.installEventFilter(self)
+        self.source: SnapshotSource | None = None
+        self._start_source(config)
+        self.timer = QtCore.QTimer(self)
+        self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
+        self.timer.timeout.connect(self.poll)
+        self.timer.start(POLL_MS)
+
+    # ----- layout -------------------------------------------------------------------------------
+    def _dock(self, title: str, widget: QtWidgets.QWidget, area: QtCore.Qt.DockWidgetArea) -> None:
+        dock = QtWidgets.QDockWidget(title, self)
+        dock.setObjectName(title)
+        dock.setWidget(widget)
+        dock.setFeatures(
+            QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetMovable
+            | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetFloatable
+        )
+        self.addDockWidget(area, dock)
+
+    def _build_toolbar(self) -> None:
+        bar = self.addToolBar("Session")
+        bar.setObjectName("Session")
+        bar.setMovable(False)
+        self.stop_button = QtWidgets.QPushButton("■  STOP  (Esc / Space)", self)
+        self.stop_button.setToolTip("emergency stop: stops the live source at once")
+        self.stop_button.setMinimumHeight(34)
+        self.stop_button.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)
+        self.stop_button.setStyleSheet(
+            "QPushButton { background:#c0392b; color:white; font-weight:700; font-size:14px;"
+            " border-radius:4px; padding:4px 16px; }"
+            "QPushButton:disabled { background:#7f8c8d; }"
+        )
+        self.stop_button.clicked.connect(lambda: self.emergency_stop("emergency stop (button)"))
+        bar.addWidget(self.stop_button)
+        self.restart_action = bar.addAction("Restart simulation")
+        self.restart_action.setToolTip("start a new simulated session with the current parameters")
+        self.restart_action.triggered.connect(self.restart)
+        self.restart_action.setEnabled(False)
+        bar.addSeparator()
+        shot = bar.addAction("Screenshot…")
+        shot.setToolTip("save the window as PNG")
+        shot.triggered.connect(self._ask_screenshot)
+        spacer = QtWidgets.QWidget(self)
+        spacer.setSizePolicy(
+            QtWidgets.QSizePolicy.Policy.Expanding, QtWidgets.QSizePolicy.Policy.Preferred
+        )
+        bar.addWidget(spacer)
+        self.stop_label = QtWidgets.QLabel("", self)
+        self.stop_label.setStyleSheet("color:#c0392b; font-weight:700; font-size:14px;")
+        bar.addWidget(self.stop_label)
+
+    # ----- the source -------------------------------------------------------------------------
+    def _start_source(self, config: LiveConfig) -> None:
+        source = self._make_source(config)
+        self.view.set_geometry(source.geometry)
+        self.plots.set_geometry(source.geometry)
+        self.controls.update_legend()
+        self._shown_seq = -1
+        self.shown = None
+        self.source = source
+        source.start()
+        self.stop_button.setEnabled(True)
+        self.stop_label.setText("")
+        self.status.set_state(SourceState.STARTING, "")
+
+    def restart(self) -> None:
+        """Replace a stopped source by a new one with the current parameters."""
+        if self.source is not None:
+            self.source.close()
+        self.restart_action.setEnabled(False)
+        self._start_source(self.panel.config)  # type: ignore[arg-type]
+
+    def emergency_stop(self, reason: str = "emergency stop") -> None:
+        """Stop the source now and show STOPPED (the source confirms with its next snapshot)."""
+        if self.source is not None:
+            self.source.emergency_stop(reason)
+        self.stop_label.setText(f"STOPPED — {reason}")
+        self.stop_button.setEnabled(False)
+        self.restart_action.setEnabled(True)
+        self.view.show_stopped()
+        self.status.set_state(SourceState.STOPPED, reason)
+        self.statusBar().showMessage(f"STOPPED: {reason}", 0)
+
+    @property
+    def stopped(self) -> bool:
+        return not self.stop_button.isEnabled()
+
+    def _apply_config(self, config: LiveConfig) -> None:
+        if self.source is not None:
+            self.source.request_config(config)
+
+    def _show_refusal(self, reason: str) -> None:
+        self.statusBar().showMessage(f"Refused: {reason}", 8000)
+
+    # ----- display ------------------------------------------------------------------------------
+    def poll(self) -> None:
+        """Show the newest snapshot if it is newer than the one shown (timer slot)."""
+        source = self.source
+        if source is None:
+            return
+        snap = source.latest()
+        if snap is None or snap.seq <= self._shown_seq:
+            return  # nothing new: no paint
+        self._shown_seq = snap.seq
+        self.shown = snap
+        self.view.show_snapshot(snap)
+        now = time.monotonic()
+        if now - self._plotted >= PLOT_PERIOD_S or snap.state is not SourceState.RUNNING:
+            self._plotted = now
+            self.plots.show_snapshot(snap)
+        # Snapshots published before a requested stop still say RUNNING: the stop wins.
+        stopping = self.stopped and snap.state is SourceState.RUNNING
+        self.status.show(snap, self.view_fps, state=SourceState.STOPPED if stopping else None)
+        if snap.state in (SourceState.STOPPED, SourceState.FAILED) and not self.stopped:
+            # Stopped or failed by itself (not by the button): same display as an e-stop.
+            self.emergency_stop(snap.message or snap.state.value)
+
+    @property
+    def view_fps(self) -> float:
+        """Paints of the 3D view per second, over the last ~60 paints."""
+        if len(self._paints) < 3:
+            return math.nan
+        span = self._paints[-1] - self._paints[0]
+        return (len(self._paints) - 1) / span if span > 0 else math.nan
+
+    def eventFilter(self, obj: QtCore.QObject, event: QtCore.QEvent) -> bool:  # noqa: N802
+        if obj is self.view.plotter and event.type() == QtCore.QEvent.Type.Paint:
+            self._paints.append(time.monotonic())
+        return False
+
+    # ----- screenshots and closing ------------------------------------------------------------
+    def _ask_screenshot(self) -> None:
+        from .screenshot import save_window
+
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(
+            self, "Save screenshot", "hapticloud.png", "PNG images (*.png)"
+        )
+        if path:
+            save_window(self, Path(path))
+            self.statusBar().showMessage(f"saved {path}", 5000)
+
+    def shutdown(self) -> None:
+        """Stop the timer and the source, release the render window (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.timer.stop()
+        app = QtWidgets.QApplication.instance()
+        if app is not None:
+            app.removeEventFilter(self._stop_filter)
+        if self.source is not None:
+            self.source.close()
+        self.view.close_view()
+
+    def closeEvent(self, event: QtGui.QCloseEvent) -> None:  # noqa: N802
+        self.shutdown()
+        super().closeEvent(event)

@@ -1,0 +1,124 @@
+"""Screenshots of the window (3D view included), and a virtual display for headless runs.
+
+``QWidget.grab()`` renders widgets through Qt's backing store; whether it includes an OpenGL
+widget's frame depends on the platform and the moment. So :func:`grab_window` grabs the window
+and then paints the 3D view's own rendering (``plotter.screenshot``, read back from VTK's frame
+buffer) over the view's rectangle: the PNG always shows what VTK drew.
+
+:func:`virtual_display` starts an ``Xvfb`` server for a process without a display: VTK needs an
+X (or Wayland) display for the Qt OpenGL widget; Qt's ``offscreen`` platform has no OpenGL.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from hapticloud.core.errors import HapticloudError
+from numpy.typing import NDArray
+from PyQt6 import QtCore, QtGui, QtWidgets
+
+
+class DisplayError(HapticloudError):
+    """No display to render on and none could be started."""
+
+
+def _qimage_from_rgb(rgb: NDArray[np.uint8]) -> QtGui.QImage:
+    rgb = np.ascontiguousarray(rgb[..., :3], dtype=np.uint8)
+    h, w, _ = rgb.shape
+    image = QtGui.QImage(rgb.data, w, h, 3 * w, QtGui.QImage.Format.Format_RGB888)
+    return image.copy()  # own the pixels: ``rgb`` is freed when we return
+
+
+def qimage_to_array(image: QtGui.QImage) -> NDArray[np.uint8]:
+    """``(H, W, 3)`` uint8 RGB copy of a QImage."""
+    image = image.convertToFormat(QtGui.QImage.Format.Format_RGB888)
+    h, w = image.height(), image.width()
+    data = np.frombuffer(image.constBits().asstring(image.sizeInBytes()), np.uint8)
+    return data.reshape(h, image.bytesPerLine())[:, : 3 * w].reshape(h, w, 3).copy()
+
+
+def grab_window(window: QtWidgets.QWidget) -> QtGui.QImage:
+    """The whole window as an image, the VTK view painted in from its own frame buffer."""
+    QtWidgets.QApplication.processEvents()
+    image = window.grab().toImage()
+    view = getattr(window, "view", None)
+    plotter = getattr(view, "plotter", None)
+    if plotter is not None and plotter.isVisible():
+        rgb = np.asarray(plotter.screenshot(return_img=True))
+        frame = _qimage_from_rgb(rgb)
+        ratio = image.devicePixelRatio() or 1.0
+        top_left = plotter.mapTo(window, QtCore.QPoint(0, 0))
+        target = QtCore.QRect(
+            round(top_left.x() * ratio),
+            round(top_left.y() * ratio),
+            round(plotter.width() * ratio),
+            round(plotter.height() * ratio),
+        )
+        painter = QtGui.QPainter(image)
+        painter.drawImage(target, frame)
+        painter.end()
+    return image
+
+
+def save_window(window: QtWidgets.QWidget, path: Path) -> Path:
+    """Write :func:`grab_window` to ``path`` as PNG; raises :class:`OSError` if it cannot."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not grab_window(window).save(str(path), "PNG"):
+        raise OSError(f"{path}: could not write the PNG")
+    return path
+
+
+def has_display() -> bool:
+    """True when Qt can open windows with OpenGL here (X11 or Wayland)."""
+    if os.environ.get("QT_QPA_PLATFORM", "").startswith(("offscreen", "minimal")):
+        return False
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+@contextlib.contextmanager
+def virtual_display(size: str = "1920x1080x24") -> Iterator[str]:
+    """Run an ``Xvfb`` server for the duration; yields its ``DISPLAY`` (also set in os.environ).
+
+    Raises :class:`DisplayError` when ``Xvfb`` is not installed or does not start.
+    """
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        raise DisplayError("no display and no Xvfb to start one (apt-get install xvfb)")
+    read_fd, write_fd = os.pipe()
+    proc = subprocess.Popen(
+        [exe, "-displayfd", str(write_fd), "-screen", "0", size, "-nolisten", "tcp"],
+        pass_fds=(write_fd,),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    os.close(write_fd)
+    try:
+        with os.fdopen(read_fd) as pipe:
+            number = pipe.readline().strip()  # Xvfb writes it once it accepts connections
+        if not number:
+            raise DisplayError(f"Xvfb did not start (exit code {proc.poll()})")
+        saved = {key: os.environ.get(key) for key in ("DISPLAY", "QT_QPA_PLATFORM")}
+        os.environ["DISPLAY"] = f":{number}"
+        os.environ["QT_QPA_PLATFORM"] = "xcb"
+        try:
+            yield f":{number}"
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

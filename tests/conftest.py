@@ -1,0 +1,60 @@
+"""Shared fixtures. GUI tests get a display that can do OpenGL, started here if there is none.
+
+Qt's ``offscreen`` platform has no OpenGL, and the pyvistaqt view is an OpenGL widget; so a GUI
+test needs an X display. With ``DISPLAY`` set (a desktop, ``xvfb-run``) it is used as is;
+without one, the ``gui_display`` fixture starts ``Xvfb`` for the session (CI runs plain
+``pytest``). pytest-qt's ``qapp`` depends on ``qapp_args``, which depends on ``gui_display`` here,
+so the display exists before the ``QApplication`` is created. At the end of the session the
+``QApplication`` is destroyed before the Xvfb it talks to is stopped (Qt aborts the process when
+its X server vanishes under it).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator
+
+import pytest
+
+
+def _usable_display() -> bool:
+    platform = os.environ.get("QT_QPA_PLATFORM", "")
+    if platform.startswith(("offscreen", "minimal")):
+        return False
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+@pytest.fixture(scope="session")
+def gui_display() -> Iterator[str]:
+    """A display for Qt + OpenGL (``DISPLAY`` value); starts Xvfb when there is none."""
+    if _usable_display():
+        yield os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY", "")
+        return
+    pytest.importorskip("PyQt6", reason="the app extras are not installed")
+    if shutil.which("Xvfb") is None:
+        pytest.skip("no display and no Xvfb to start one (apt-get install xvfb)")
+    from hapticloud.app.screenshot import virtual_display
+
+    with virtual_display() as display:
+        try:
+            yield display
+        finally:
+            _destroy_qapplication()
+
+
+def _destroy_qapplication() -> None:
+    from PyQt6 import QtWidgets, sip
+
+    app = QtWidgets.QApplication.instance()
+    if app is None:
+        return
+    app.closeAllWindows()
+    app.processEvents()
+    sip.delete(app)
+
+
+@pytest.fixture(scope="session")
+def qapp_args(gui_display: str) -> list[str]:
+    """pytest-qt's QApplication arguments; depending on ``gui_display`` orders the two."""
+    return ["hapticloud-tests"]
