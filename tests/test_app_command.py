@@ -91,3 +91,16 @@ def test_screenshot_writes_a_png_with_the_3d_view(tmp_path: Path, gui_display: s
     assert view.shape[0] > 300 and view.shape[1] > 500
     assert view.std() > 20
     assert len(np.unique(view.reshape(-1, 3) // 8, axis=0)) > 100
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["--set", "perception.voxel.voxel_size_m=-1"], ["nowhere"]],
+    ids=["option-first", "scene-first"],
+)
+def test_arguments_without_a_command_go_to_the_app(argv, capsys) -> None:
+    # `hapticloud [app] [SCENE] [options]`: the same one-line refusal as with `app` spelled out.
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert cli.main(["app", *argv]) == 2
+    assert capsys.readouterr().err.strip() == err and "invalid choice" not in err
