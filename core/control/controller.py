@@ -342,25 +342,21 @@ class HierarchicalController:
         for extra in (hip_position, hip_jacobian, hip_jdot_qd):
             if extra is not None:
                 total += extra.sum()
+
         if not math.isfinite(total):
-            return self._fault(
-                "non-finite input: "
-                + ", ".join(
-                    self._culprits(
-                        q,
-                        qd,
-                        M,
-                        h,
-                        hip_position,
-                        hip_jacobian,
-                        hip_jdot_qd,
-                        interaction_torque,
-                        haptic_rows,
-                        wall_rows,
-                        motion,
-                    )
-                ),
+            return self._non_finite_fault(
                 t0,
+                q,
+                qd,
+                M,
+                h,
+                hip_position,
+                hip_jacobian,
+                hip_jdot_qd,
+                interaction_torque,
+                haptic_rows,
+                wall_rows,
+                motion,
             )
 
         levels = self._levels(
@@ -379,24 +375,19 @@ class HierarchicalController:
         )
         result = self.solver.solve(levels)
         if result.status == SolveStatus.INVALID_INPUT:
-            return self._fault(
-                "non-finite input: "
-                + ", ".join(
-                    self._culprits(
-                        q,
-                        qd,
-                        M,
-                        h,
-                        hip_position,
-                        hip_jacobian,
-                        hip_jdot_qd,
-                        interaction_torque,
-                        haptic_rows,
-                        wall_rows,
-                        motion,
-                    )
-                ),
+            return self._non_finite_fault(
                 t0,
+                q,
+                qd,
+                M,
+                h,
+                hip_position,
+                hip_jacobian,
+                hip_jdot_qd,
+                interaction_torque,
+                haptic_rows,
+                wall_rows,
+                motion,
             )
         if result.status not in _USABLE:
             return self._compensation(
@@ -528,6 +519,10 @@ class HierarchicalController:
             (time.perf_counter() - t0) * 1e6,
             reason,
         )
+
+    def _non_finite_fault(self, t0: float, *inputs: Any) -> ControlOutput:
+        """Zero torque and a FAULT naming the ``inputs`` (as in :meth:`_culprits`) not finite."""
+        return self._fault("non-finite input: " + ", ".join(self._culprits(*inputs)), t0)
 
     def _fault(self, reason: str, t0: float) -> ControlOutput:
         n = self.n_joints
