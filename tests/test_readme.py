@@ -21,6 +21,7 @@ def test_readme_api_example_runs() -> None:
     assert lines[1] == "[0.0, 0.0, 1.0]"
     free_mm = float(lines[2].split()[2])
     assert abs(free_mm - 20.0) < 1.5
+    assert lines[-1] == "True [0.0, 0.0, 1.29]"  # the fused surface
 
 
 def test_readme_starts_with_the_two_commands() -> None:
