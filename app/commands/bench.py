@@ -17,7 +17,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Speed and accuracy studies. 'perception': accuracy against ground truth and "
         "latency per stage for the curvature-aware estimator, the paper's and a nearest-point "
         "baseline over the benchmark scenes. 'loop': the 800 Hz control tick timed in a closed "
-        "loop (median, p99, deadline misses).",
+        "loop (median, p99, deadline misses). 'gui': the desktop app's 3D view update rate and "
+        "frame-to-screen latency.",
     )
     studies = parser.add_subparsers(dest="study", metavar="STUDY", required=True)
     perception = studies.add_parser(
@@ -48,8 +49,38 @@ def register(sub: argparse._SubParsersAction) -> None:
     loop.add_argument(
         "--rendered", action="store_true", help="keep the scene's rendered cameras (slower run)"
     )
+    loop.add_argument(
+        "--bus",
+        action="store_true",
+        help="run the control process in real time with drive bus I/O against the emulator "
+        "(--duration is then wall-clock s)",
+    )
+    loop.add_argument(
+        "--with-perception",
+        action="store_true",
+        help="with --bus: run both simulated cameras' perception in the parent at the same time",
+    )
+    loop.add_argument(
+        "--emulator",
+        choices=("stepped", "thread"),
+        default="stepped",
+        help="with --bus: emulator stepped in the loop (default) or on its own thread",
+    )
     add_set_option(loop, "haptics.force_enabled=false")
     loop.set_defaults(handler=run_loop)
+    gui = studies.add_parser(
+        "gui",
+        help="the desktop app's 3D view: updates per second, render time, frame-to-screen",
+        description="Updates the app's 3D view (880x500 px, two synthetic 5000-point clouds "
+        "moving every frame and every overlay) at full speed and reports view updates per second "
+        "(median of 1 s windows), actor-update and render time per frame, frame-to-screen latency "
+        "and whether any actor was added. Starts its own Xvfb when there is no display.",
+    )
+    gui.add_argument(
+        "--duration", type=positive_float, default=10.0, metavar="S", help="wall-clock s (10)"
+    )
+    gui.add_argument("--json", action="store_true", help="print one JSON object")
+    gui.set_defaults(handler=run_gui)
 
 
 def run_perception(args: argparse.Namespace) -> int:
@@ -67,6 +98,18 @@ def run_perception(args: argparse.Namespace) -> int:
 
 
 def run_loop(args: argparse.Namespace) -> int:
+    if args.bus:
+        from hapticloud.hardware.control import bench as bus_bench
+
+        return bus_bench.main(
+            args.scene,
+            args.duration,
+            overrides(args.set),
+            args.json,
+            sys.stdout,
+            with_perception=args.with_perception,
+            emulator=args.emulator,
+        )
     from hapticloud.core.studies import loop_bench
 
     return loop_bench.main(
@@ -77,3 +120,9 @@ def run_loop(args: argparse.Namespace) -> int:
         sys.stdout,
         oracle=not args.rendered,
     )
+
+
+def run_gui(args: argparse.Namespace) -> int:
+    from hapticloud.app import bench_gui
+
+    return bench_gui.main(args.duration, args.json, sys.stdout)

@@ -1,0 +1,144 @@
+"""The control process: deadline pacing, the loop in its own process, torque gating, watchdogs.
+
+Reactions are asserted from the recorded per-tick log the process returns, not from sleeping.
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import time
+
+import numpy as np
+import pytest
+from hapticloud.hardware.control import STATE_CODES, ControlProcess, DeadlineLoop, try_sched_fifo
+
+ENABLED = STATE_CODES["enabled"]
+FAULT = STATE_CODES["fault"]
+
+
+# ----- deadline loop -----------------------------------------------------------------------------
+def test_deadline_loop_counts_injected_overrun():
+    dl = DeadlineLoop(0.002, spin_s=0.0005)
+    gc_before = gc.isenabled()
+    dl.start()
+    try:
+        assert not gc.isenabled()
+        starts = []
+        for _ in range(30):
+            k, t_k = dl.wait()
+            starts.append((k, t_k, time.perf_counter()))
+            if k == 10:
+                time.sleep(0.005)  # overruns its period and the next deadline
+            dl.done()
+    finally:
+        dl.stop()
+    assert gc.isenabled() == gc_before
+    st = dl.stats()
+    assert st.misses >= 1
+    assert st.overruns >= 1
+    assert st.ticks == 30
+    # Deadlines are absolute: t_k = t0 + k * period, and no tick started before its deadline.
+    for k, t_k, started in starts:
+        assert t_k == pytest.approx(dl.t0 + k * 0.002)
+        assert started >= t_k
+    # The ticks after the overrun that fell more than a period behind were skipped, not bunched.
+    assert max(k for k, _, _ in starts) >= 29
+
+
+def test_deadline_loop_quiet_run_has_no_misses_and_fifo_falls_back_cleanly():
+    dl = DeadlineLoop(0.004, spin_s=0.001, fifo_priority=10)
+    dl.start()
+    try:
+        for _ in range(10):
+            dl.wait()
+            dl.done()
+    finally:
+        dl.stop()
+    st = dl.stats()
+    assert st.ticks == 10
+    assert isinstance(st.sched_fifo, bool) and st.sched_note
+    assert st.as_dict()["misses_per_10k"] >= 0.0
+    # Scheduling policy restored after stop.
+    if hasattr(os, "sched_getscheduler"):
+        assert os.sched_getscheduler(0) != os.SCHED_FIFO
+
+
+def test_try_sched_fifo_never_raises():
+    ok, note = try_sched_fifo(1)
+    assert isinstance(ok, bool) and note
+    if ok:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+# ----- the process -------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def run():
+    """One process run: ~0.3 s ready, enable, ~0.3 s enabled, drive 2 faults, stop."""
+    cp = ControlProcess("impacts", fifo_priority=None)
+    info = cp.start(timeout=60.0)
+    pid = cp.pid
+    try:
+        time.sleep(0.3)
+        cp.enable("test")
+        time.sleep(0.3)
+        cp.inject_drive_fault(2)
+        time.sleep(0.15)
+        snaps = cp.snapshots()
+        assert cp.alive
+    finally:
+        result = cp.stop(timeout=20.0)
+    return {"cp": cp, "info": info, "pid": pid, "snaps": snaps, "result": result}
+
+
+def test_process_runs_returns_snapshots_and_stops_cleanly(run):
+    cp, res, snaps = run["cp"], run["result"], run["snaps"]
+    assert run["info"]["pid"] == run["pid"] != os.getpid()
+    assert isinstance(run["info"]["sched_fifo"], bool)
+    assert res is not None and cp.error is None
+    assert res["ticks"] > 400  # ~0.75 s at 800 Hz
+    assert len(snaps) > 20
+    seqs = [s.seq for s in snaps]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+    assert all(len(s.q) == 6 and len(s.tau_sent) == 6 for s in snaps)
+    assert {s.state for s in snaps} >= {"ready", "enabled"}
+    # Stopped and reaped: no live child, no zombie.
+    assert not cp.alive
+    stat = f"/proc/{run['pid']}/stat"
+    if os.path.exists(stat):
+        with open(stat) as f:
+            assert f.read().split(")")[-1].split()[0] != "Z"
+    # The bus ran: every SYNC answered by six feedback frames once running.
+    counters = res["link_counters"]
+    assert counters["syncs_sent"] >= res["ticks"]
+    assert counters["send_errors"] == 0
+
+
+def test_no_torque_before_enable_and_torque_after(run):
+    log = run["result"]["log"]
+    state, tau = log["state"], log["tau_sent"]
+    assert (state == ENABLED).any()
+    first_enabled = int(np.argmax(state == ENABLED))
+    assert first_enabled > 0
+    assert np.all(tau[:first_enabled] == 0.0)
+    assert np.all(tau[state != ENABLED] == 0.0)
+    # Once the drives follow the enable, torque (gravity compensation) flows.
+    assert np.abs(tau[state == ENABLED]).sum() > 0.0
+
+
+def test_drive_fault_turns_torque_off_within_four_ticks(run):
+    res = run["result"]
+    log = res["log"]
+    fault_cmd = [c for c in res["commands"] if c[2] == "fault"]
+    assert len(fault_cmd) == 1
+    injected = fault_cmd[0][0]  # tick at which the emulator's injector was told
+    tau = log["tau_sent"]
+    assert np.abs(tau[injected - 1]).sum() > 0.0  # torque flowed right before
+    off = np.flatnonzero(np.all(tau[injected:] == 0.0, axis=1))
+    assert off.size and off[0] <= 4
+    # It stays off (latched), the session went to FAULT, for the right reason.
+    assert np.all(tau[injected + off[0] :] == 0.0)
+    assert log["state"][-1] == FAULT
+    assert any(tr[2] == "fault" and "drive_fault" in tr[3] for tr in res["transitions"])
+    seen = np.flatnonzero(log["any_fault"][injected:] > 0)
+    assert seen.size and seen[0] <= off[0]
