@@ -4,7 +4,7 @@
   injection;
 - :mod:`hapticloud.hardware.sources`: camera sources behind ``read(timeout)`` / ``close()``;
 - :mod:`hapticloud.hardware.session`: the session state machine and the staged watchdogs;
-- :mod:`hapticloud.hardware.control`: the 800 Hz control process (being built).
+- :mod:`hapticloud.hardware.control`: the 800 Hz control process and its bus benchmark.
 
 No Qt here; this layer may import :mod:`hapticloud.core`, never :mod:`hapticloud.app`.
 """
