@@ -52,8 +52,9 @@ from hapticloud.core.geometry.primitives import Box, Capsule, Primitive, Sphere
 from hapticloud.core.haptics import d_proj
 from hapticloud.core.perception import STAGES, CameraPipeline, PerceptionConfig, SurfaceEstimate
 from hapticloud.core.sim import GroundTruth, SimScene, demo_scene, end_effector
-from hapticloud.core.studies.demo import CAMERA_RATE_HZ, hip_at
+from hapticloud.core.studies.demo import CAMERA_RATE_HZ, DEMO_HANDLE_DIRECTION, hip_at
 from hapticloud.core.studies.perception import R_HIP_M
+from hapticloud.core.validation import read_only_copy
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
@@ -65,8 +66,6 @@ HISTORY_S = 10.0
 #: Every n-th pixel (both directions) of a frame is kept as that camera's scene cloud: enough to
 #: show what the crop removed (~5k points per camera), small enough to send at 60 frames/s.
 CONTEXT_STRIDE = 8
-#: The demo's end-effector handle direction (as in ``core.studies.demo.demo_frames``).
-DEMO_HANDLE_DIRECTION = (0.35, -0.6, -0.7)
 #: Chord tolerance of the display meshes of the simulator's bodies (m). The ray-casting meshes
 #: (0.1 mm, 176k vertices for the demo) are far too heavy to draw at 30 Hz in software GL.
 DISPLAY_MESH_TOLERANCE_M = 0.002
@@ -573,12 +572,6 @@ class _Receiver:
         self.arrivals = {i: deque(maxlen=31) for i in range(self.n_cameras)}
 
 
-def _frozen(arr: Any, dtype: type = np.float64) -> NDArray:
-    out = np.array(arr, dtype=dtype)
-    out.setflags(write=False)
-    return out
-
-
 class LiveSource:
     """Runs a simulated scene live off the GUI thread and publishes :class:`Snapshot` objects.
 
@@ -750,7 +743,7 @@ class LiveSource:
         state.newest[p.camera] = CameraFrame(
             name=est.camera,
             estimate=est,
-            context=_frozen(p.context, np.float32),
+            context=read_only_copy(p.context, np.float32),
             render_ms=p.render_ms,
             rate_hz=rate,
             d_proj_m=p.d_proj_m,
@@ -773,13 +766,13 @@ class LiveSource:
             captured=p.captured,
             state=SourceState.RUNNING,
             message="",
-            hip=_frozen(p.hip),
+            hip=read_only_copy(p.hip),
             robot=p.robot,
             cameras=tuple(state.newest[i] for i in sorted(state.newest)),
             fused=p.fused,
             fused_d_proj_m=p.fused_d_proj_m,
             truth=p.truth,
-            body_offsets=tuple(_frozen(o) for o in p.body_offsets),
+            body_offsets=tuple(read_only_copy(o) for o in p.body_offsets),
             config=state.config if state.config is not None else self._config,
             config_version=p.config_version,
             real_time_factor=rtf,

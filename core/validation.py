@@ -72,3 +72,21 @@ def as_finite_scalar(value: object, name: str) -> float:
     if not np.isfinite(out):
         raise InputError(f"{name}: must be finite, got {out}")
     return out
+
+
+def read_only(arr: NDArray) -> NDArray:
+    """``arr`` itself, marked read-only: for arrays the caller has just created."""
+    arr.setflags(write=False)
+    return arr
+
+
+def read_only_view(arr: NDArray) -> NDArray:
+    """A read-only view of ``arr``; ``arr`` (perhaps the caller's own) stays writeable."""
+    view = arr.view()
+    view.setflags(write=False)
+    return view
+
+
+def read_only_copy(value: ArrayLike, dtype: type = np.float64) -> NDArray:
+    """A read-only copy of ``value`` as ``dtype``."""
+    return read_only(np.array(value, dtype=dtype))

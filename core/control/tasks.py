@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..config import StageConfig, param
 from ..errors import InputError
-from ..validation import as_finite_scalar, as_unit_vector3, as_vector3
+from ..validation import as_finite_scalar, as_unit_vector3, as_vector3, read_only
 from .rows import Equality, Inequality
 
 FloatArray = NDArray[np.float64]
@@ -58,16 +58,11 @@ def _n_joints(n_joints: object) -> int:
     return int(n_joints)
 
 
-def _frozen(arr: FloatArray) -> FloatArray:
-    arr.setflags(write=False)
-    return arr
-
-
 def _limit_vector(value: ArrayLike, n: int, name: str, *, allow_inf: bool) -> FloatArray:
     arr = _array(np.reshape(value, -1), (n,), name)
     if np.isnan(arr).any() or (not allow_inf and not np.isfinite(arr).all()):
         raise InputError(f"{name}: must be {'numbers' if allow_inf else 'finite'}, got {arr}")
-    return _frozen(arr.copy())
+    return read_only(arr.copy())
 
 
 def _selector(n: int, block: int, sign: float) -> FloatArray:
@@ -108,7 +103,7 @@ class EquationOfMotion:
     def __init__(self, n_joints: int, config: EquationOfMotionConfig | None = None) -> None:
         self.n = _n_joints(n_joints)
         self.config = config if config is not None else EquationOfMotionConfig()
-        self._minus_eye = _frozen(-np.eye(self.n))
+        self._minus_eye = read_only(-np.eye(self.n))
 
     def rows(
         self,
@@ -192,7 +187,7 @@ class JointPositionLimit:
             )
         self._upper = self.q_max - margin
         self._lower = self.q_min + margin
-        self._G = _frozen(np.vstack([_selector(self.n, 0, 1.0), _selector(self.n, 0, -1.0)]))
+        self._G = read_only(np.vstack([_selector(self.n, 0, 1.0), _selector(self.n, 0, -1.0)]))
 
     def horizon_s(self, dt: float) -> float:
         """The horizon actually used: ``max(horizon_s, dt)``."""
@@ -243,7 +238,7 @@ class JointVelocityLimit:
         self.v_max = _limit_vector(v_max, self.n, "v_max", allow_inf=True)
         if not np.all(self.v_max > 0):
             raise InputError(f"v_max: must be positive, got {self.v_max.tolist()}")
-        self._G = _frozen(np.vstack([_selector(self.n, 0, 1.0), _selector(self.n, 0, -1.0)]))
+        self._G = read_only(np.vstack([_selector(self.n, 0, 1.0), _selector(self.n, 0, -1.0)]))
 
     def rows(self, qd: ArrayLike, dt: float) -> Inequality:
         """Rows for joint velocities ``qd`` (shape ``(n,)``), period ``dt``."""
@@ -289,7 +284,7 @@ class TorqueLimit:
         G = np.vstack([_selector(self.n, 1, 1.0), _selector(self.n, 1, -1.0)])
         h = self.config.scale * np.concatenate([self.tau_max, self.tau_max])
         # Constant rows: built once, handed out read-only every tick.
-        self._rows = Inequality(_frozen(G), _frozen(h), "torque_limit")
+        self._rows = Inequality(read_only(G), read_only(h), "torque_limit")
 
     def rows(self) -> Inequality:
         """The (constant) rows."""
@@ -347,10 +342,10 @@ class FixedWalls:
         nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         if pts.shape != nrm.shape:
             raise InputError(f"points, normals: shapes differ, {pts.shape} and {nrm.shape}")
-        self.points = _frozen(
+        self.points = read_only(
             np.array([as_vector3(p, f"points[{i}]") for i, p in enumerate(pts)]).reshape(-1, 3)
         )
-        self.normals = _frozen(
+        self.normals = read_only(
             np.array([as_unit_vector3(v, f"normals[{i}]") for i, v in enumerate(nrm)]).reshape(
                 -1, 3
             )
@@ -450,8 +445,8 @@ class MinimizeAcceleration:
     def __init__(self, n_joints: int, config: MinimizeAccelerationConfig | None = None) -> None:
         self.config = config if config is not None else MinimizeAccelerationConfig()
         self.n = _n_joints(n_joints)
-        self._A = _frozen(_selector(self.n, 0, 1.0))
-        self._zero = _frozen(np.zeros(self.n))
+        self._A = read_only(_selector(self.n, 0, 1.0))
+        self._zero = read_only(np.zeros(self.n))
 
     def rows(self, qd: ArrayLike | None = None) -> Equality:
         """Rows; ``qd`` (shape ``(n,)``) is needed only when damping is set."""
@@ -503,7 +498,7 @@ class JointMotionTask:
     def __init__(self, n_joints: int, config: JointMotionConfig | None = None) -> None:
         self.config = config if config is not None else JointMotionConfig()
         self.n = _n_joints(n_joints)
-        self._A = _frozen(_selector(self.n, 0, 1.0))
+        self._A = read_only(_selector(self.n, 0, 1.0))
 
     def rows(
         self,

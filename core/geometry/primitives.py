@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from ..validation import as_finite_scalar, as_points, as_vector3
+from ..validation import as_finite_scalar, as_points, as_vector3, read_only_copy
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -25,12 +25,6 @@ def _positive(value: object, name: str) -> float:
     return out
 
 
-def _frozen(arr: FloatArray) -> FloatArray:
-    arr = np.array(arr, dtype=np.float64)
-    arr.setflags(write=False)
-    return arr
-
-
 @dataclass(frozen=True)
 class Sphere:
     """Solid sphere. ``center`` (3,) in m, ``radius`` in m."""
@@ -39,7 +33,7 @@ class Sphere:
     radius: float
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _frozen(as_vector3(self.center, "center")))
+        object.__setattr__(self, "center", read_only_copy(as_vector3(self.center, "center")))
         object.__setattr__(self, "radius", _positive(self.radius, "radius"))
 
     def signed_distance(self, points: ArrayLike) -> FloatArray:
@@ -67,8 +61,8 @@ class Capsule:
     radius: float
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "a", _frozen(as_vector3(self.a, "a")))
-        object.__setattr__(self, "b", _frozen(as_vector3(self.b, "b")))
+        object.__setattr__(self, "a", read_only_copy(as_vector3(self.a, "a")))
+        object.__setattr__(self, "b", read_only_copy(as_vector3(self.b, "b")))
         object.__setattr__(self, "radius", _positive(self.radius, "radius"))
 
     def _axis_distance(self, p: FloatArray) -> FloatArray:
@@ -101,17 +95,17 @@ class Box:
     rotation: FloatArray = field(default_factory=lambda: np.eye(3))
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _frozen(as_vector3(self.center, "center")))
+        object.__setattr__(self, "center", read_only_copy(as_vector3(self.center, "center")))
         half = as_vector3(self.half_extents, "half_extents")
         if np.any(half <= 0):
             raise InputError(f"half_extents = {half.tolist()}: must be positive")
-        object.__setattr__(self, "half_extents", _frozen(half))
+        object.__setattr__(self, "half_extents", read_only_copy(half))
         rot = np.asarray(self.rotation, dtype=np.float64)
         if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
             raise InputError(f"rotation: expected a finite (3, 3) matrix, got shape {rot.shape}")
         if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0:
             raise InputError("rotation: must be a proper rotation matrix (orthonormal, det +1)")
-        object.__setattr__(self, "rotation", _frozen(rot))
+        object.__setattr__(self, "rotation", read_only_copy(rot))
 
     def _local(self, points: ArrayLike) -> FloatArray:
         return (as_points(points, "points") - self.center) @ self.rotation

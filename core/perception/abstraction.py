@@ -24,6 +24,7 @@ from ..config import StageConfig, nested, param
 from ..errors import ConfigError
 from ..geometry.fits import circle3d, plane3d
 from ..geometry.rotations import orient_normal
+from ..haptics.distance import d_proj
 from ..validation import as_points, as_unit_vector3, as_vector3, drop_nonfinite
 from .estimate import ShellFit
 
@@ -163,7 +164,7 @@ class SurfaceFit:
 
     def d_proj(self, hip: ArrayLike, r_hip_m: float) -> float:
         """Signed free distance ``(c - h) . (-n) - r_hip`` (m); negative means penetration."""
-        return float((self.centroid - as_vector3(hip, "hip")) @ -self.normal - r_hip_m)
+        return d_proj(self.centroid, self.normal, hip, r_hip_m)
 
     @classmethod
     def invalid(cls, reason: str, **extra: object) -> SurfaceFit:

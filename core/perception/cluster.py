@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from ..config import StageConfig, param
 from ..errors import InputError
-from ..validation import as_vector3
+from ..validation import as_vector3, read_only
 from .voxel import VoxelResult
 
 FloatArray = NDArray[np.float64]
@@ -90,11 +90,6 @@ class ClusterResult:
     def n_clusters(self) -> int:
         """Clusters found (before any rejection)."""
         return int(self.cluster_sizes.shape[0])
-
-
-def _frozen(arr: NDArray) -> NDArray:
-    arr.setflags(write=False)
-    return arr
 
 
 @cache
@@ -236,10 +231,10 @@ def cluster_voxels(
     keep_cluster[chosen] = True
     kept = keep_cluster[labels] if n else np.zeros(0, dtype=bool)
     return ClusterResult(
-        points=_frozen(np.compress(kept, pts, axis=0)),
-        rejected=_frozen(np.compress(~kept, pts, axis=0)),
-        labels=_frozen(labels),
-        kept=_frozen(kept),
-        cluster_sizes=_frozen(sizes),
+        points=read_only(np.compress(kept, pts, axis=0)),
+        rejected=read_only(np.compress(~kept, pts, axis=0)),
+        labels=read_only(labels),
+        kept=read_only(kept),
+        cluster_sizes=read_only(sizes),
         kept_clusters=tuple(int(c) for c in chosen),
     )

@@ -27,7 +27,7 @@ from ..camera import DepthFrame
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
 from ..geometry.primitives import Box, Capsule, Primitive, Sphere
-from ..validation import as_points, as_vector3
+from ..validation import as_points, as_vector3, read_only
 
 FloatArray = NDArray[np.float64]
 
@@ -118,13 +118,8 @@ class CropResult:
         return self.n_input - self.n_in_workspace
 
 
-def _frozen(arr: FloatArray) -> FloatArray:
-    arr.setflags(write=False)
-    return arr
-
-
 def _empty_points() -> FloatArray:
-    return _frozen(np.empty((0, 3), dtype=np.float64))
+    return read_only(np.empty((0, 3), dtype=np.float64))
 
 
 def _as_primitives(exclude: Sequence[Primitive] | None) -> tuple[Primitive, ...]:
@@ -228,8 +223,8 @@ def _finish(
     else:
         kept, removed = pts, np.empty((3, 0), dtype=np.float64)
     return CropResult(
-        points=_frozen(np.ascontiguousarray(kept.T)),
-        removed_robot=_frozen(np.ascontiguousarray(removed.T)),
+        points=read_only(np.ascontiguousarray(kept.T)),
+        removed_robot=read_only(np.ascontiguousarray(removed.T)),
         n_input=int(n_input),
         n_in_workspace=int(pts.shape[1]),
         region=region,

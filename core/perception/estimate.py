@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..haptics.distance import d_proj
+
 FloatArray = NDArray[np.float64]
 
 _ZERO3 = np.zeros(3)
@@ -110,7 +112,7 @@ class SurfaceEstimate:
 
     def d_proj(self, hip: NDArray, r_hip_m: float) -> float:
         """Signed free distance ``(c - h) . (-n) - r_hip`` (m); negative means penetration."""
-        return float(np.dot(self.centroid - np.asarray(hip, float), -self.normal) - r_hip_m)
+        return d_proj(self.centroid, self.normal, hip, r_hip_m)
 
     @classmethod
     def invalid(cls, t: float, camera: str, reason: str, **extra: Any) -> SurfaceEstimate:

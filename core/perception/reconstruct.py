@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 
 from ..config import StageConfig, param
 from ..errors import ConfigError
-from ..validation import as_finite_scalar, as_points, as_vector3
+from ..validation import as_finite_scalar, as_points, as_vector3, read_only_view
 
 FloatArray = NDArray[np.float64]
 
@@ -165,13 +165,6 @@ class ReconstructionResult:
     n_memory_ring: int = 0
 
 
-def _frozen(arr: NDArray) -> NDArray:
-    # A read-only view: the caller's own array (passed through unchanged) stays writeable.
-    view = arr.view()
-    view.setflags(write=False)
-    return view
-
-
 def _cloud(points: FloatArray) -> o3d.geometry.PointCloud:
     # Vector3dVector refuses read-only arrays; the copy is a few kB.
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, dtype=np.float64)))
@@ -241,7 +234,7 @@ class SurfaceMemory:
     def points(self) -> FloatArray:
         """The remembered points (world, m) as of the last step; empty after :meth:`reset`."""
         if self._points is None:
-            return _frozen(np.empty((0, 3)))
+            return read_only_view(np.empty((0, 3)))
         return self._points
 
     def reset(self) -> None:
@@ -249,7 +242,7 @@ class SurfaceMemory:
         self._points = None
 
     def _remember(self, points: FloatArray, hip: FloatArray, t: float) -> None:
-        self._points = _frozen(np.ascontiguousarray(points))
+        self._points = read_only_view(np.ascontiguousarray(points))
         self._hip = hip
         self._t = t
 
@@ -296,7 +289,14 @@ class SurfaceMemory:
         if not cfg.enabled:
             self.reset()
             return ReconstructionResult(
-                _frozen(pts), _frozen(empty), _frozen(empty), 0.0, 0.0, np.eye(4), False, "disabled"
+                read_only_view(pts),
+                read_only_view(empty),
+                read_only_view(empty),
+                0.0,
+                0.0,
+                np.eye(4),
+                False,
+                "disabled",
             )
         r_in2, r_out2 = cfg.r_in_m**2, cfg.r_out_m**2
         in_ring = (d2 >= r_in2) & (d2 < r_out2)
@@ -341,12 +341,12 @@ class SurfaceMemory:
             self._remember(np.concatenate([ring, inner_memory]), h, t)
         out = np.concatenate([pts, filled]) if filled.shape[0] else pts
         return ReconstructionResult(
-            points=_frozen(out),
-            filled=_frozen(filled),
-            ring=_frozen(ring),
+            points=read_only_view(out),
+            filled=read_only_view(filled),
+            ring=read_only_view(ring),
             icp_fitness=fitness,
             icp_rmse_m=rmse,
-            transform=_frozen(transform),
+            transform=read_only_view(transform),
             used_memory=not reason,
             reason=reason,
             n_memory_ring=n_src,

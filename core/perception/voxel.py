@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..config import StageConfig, param
-from ..validation import as_points, as_vector3
+from ..validation import as_points, as_vector3, read_only
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32]
@@ -88,17 +88,12 @@ class VoxelResult:
         return int(self.points.shape[0])
 
 
-def _frozen(arr: NDArray) -> NDArray:
-    arr.setflags(write=False)
-    return arr
-
-
 def _empty(origin: FloatArray, size: float, n_input: int) -> VoxelResult:
     return VoxelResult(
-        points=_frozen(np.empty((0, 3))),
-        ijk=_frozen(np.empty((0, 3), dtype=np.int32)),
-        counts=_frozen(np.empty(0, dtype=np.int64)),
-        origin=_frozen(origin.copy()),
+        points=read_only(np.empty((0, 3))),
+        ijk=read_only(np.empty((0, 3), dtype=np.int32)),
+        counts=read_only(np.empty(0, dtype=np.int64)),
+        origin=read_only(origin.copy()),
         voxel_size_m=size,
         n_input=n_input,
         n_dropped=n_input,
@@ -188,10 +183,10 @@ def voxel_downsample(
         means[:, i] = np.bincount(inverse, weights=rel[i], minlength=k) / cnt + o[i]
     ijk = (cells + lo[:, None]).T.astype(np.int32)
     return VoxelResult(
-        points=_frozen(means),
-        ijk=_frozen(np.ascontiguousarray(ijk)),
-        counts=_frozen(cnt.astype(np.int64)),
-        origin=_frozen(o.copy()),
+        points=read_only(means),
+        ijk=read_only(np.ascontiguousarray(ijk)),
+        counts=read_only(cnt.astype(np.int64)),
+        origin=read_only(o.copy()),
         voxel_size_m=size,
         n_input=n_in,
         n_dropped=n_in - n_ok,

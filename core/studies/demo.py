@@ -23,6 +23,8 @@ CAMERA_RATE_HZ = 30.0
 REACH_PERIOD_S = 4.0
 CHEST_HIP = np.array([0.26, -0.06, 0.98])
 FACE_HIP = np.array([0.15, -0.01, 1.21])
+# The end effector's handle leaves the HIP forward-right and down, like the exoskeleton's forearm.
+DEMO_HANDLE_DIRECTION = (0.35, -0.6, -0.7)
 
 
 @dataclass(frozen=True)
@@ -60,8 +62,7 @@ def demo_frames(
             # Interleaved: the second camera fires half a period after the first.
             t = k * period + j * period / len(scene.cameras)
             hip = hip_at(t)
-            handle_direction = np.array([0.35, -0.6, -0.7])
-            occluders = end_effector(hip, handle_direction)
+            occluders = end_effector(hip, np.asarray(DEMO_HANDLE_DIRECTION))
             frame = camera.render(scene.world, t, occluders=occluders)
             est = pipes[camera.name].process_depth(frame, hip, exclude=occluders)
             truth = scene.world.ground_truth(hip, t)
