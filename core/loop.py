@@ -279,19 +279,7 @@ class HapticLoop:
         self.fusion = fusion
         self.walls = tuple(w for w in walls if w.level == "haptic")
         self.fused_region = fused_region
-        cfg = self.config
-        self.positional = PositionalConstraint(cfg.positional)
-        self.velocity = VelocityConstraint(cfg.velocity)
-        self.force = ForceConstraint(cfg.force)
-        # Force limits per region (validated now: an unknown region is a scene error).
-        self._force_limit = {
-            region: self.force.force_limit_n(SurfacePoint(_ZERO3, _UNIT_Z, _ZERO3, region))
-            for region in {fused_region, *(w.part for w in self.walls)}
-        }
-        self._act_motion = max(
-            cfg.positional.activation_distance_m if cfg.positional_enabled else -math.inf,
-            cfg.velocity.activation_distance_m if cfg.velocity_enabled else -math.inf,
-        )
+        self.configure(self.config)
         n = controller.n_joints
         self.n_joints = n
         # Level 5, tau = h: [0, I] x = h. The matrix is constant; only b changes per tick.
@@ -312,6 +300,29 @@ class HapticLoop:
         self._n_haptic = 0
         self._last_x: tuple[FloatArray, FloatArray] | None = None
         self.last_fused: FusedSurface | None = None
+        #: Cap on the approach speed towards every surface in reach (m/s), on top of the velocity
+        #: constraint's own bound; ``None``: none. A session's watchdog sets it to v_min while it
+        #: holds a surface it can no longer see (a stale camera or estimate).
+        self.approach_limit_mps: float | None = None
+
+    def configure(self, haptics: HapticsConfig) -> None:
+        """Use ``haptics`` from the next tick on (a few µs: tuning while the loop runs)."""
+        cfg = haptics
+        positional = PositionalConstraint(cfg.positional)
+        velocity = VelocityConstraint(cfg.velocity)
+        force = ForceConstraint(cfg.force)
+        # Force limits per region (validated now: an unknown region is a scene error).
+        force_limit = {
+            region: force.force_limit_n(SurfacePoint(_ZERO3, _UNIT_Z, _ZERO3, region))
+            for region in {self.fused_region, *(w.part for w in self.walls)}
+        }
+        self.config = cfg
+        self.positional, self.velocity, self.force = positional, velocity, force
+        self._force_limit = force_limit
+        self._act_motion = max(
+            cfg.positional.activation_distance_m if cfg.positional_enabled else -math.inf,
+            cfg.velocity.activation_distance_m if cfg.velocity_enabled else -math.inf,
+        )
 
     # ----- one tick ------------------------------------------------------------------------------
     def surfaces(self, hip: FloatArray, primary: SurfacePoint | None) -> list[SurfacePoint]:
@@ -606,6 +617,14 @@ class HapticLoop:
             bits |= VELOCITY
             if b_v < bound:
                 bound, which = b_v, VELOCITY
+        cap = self.approach_limit_mps
+        if cap is not None:
+            gain_time = vc.kv * dt
+            d_dot = hs.d_dot_robot + (hs.d_dot_surface if vc.surface_velocity_feedforward else 0.0)
+            b_c = (max(cap, 0.0) + d_dot) / gain_time + hs.Jdc_qd
+            bits |= VELOCITY
+            if b_c < bound:
+                bound, which = b_c, VELOCITY
         if bits == POSITIONAL | VELOCITY:
             # Both rows present: the binding one is the tighter (``which``).
             bits |= _TIGHTER | (_POS_TIGHTER if which == POSITIONAL else 0)

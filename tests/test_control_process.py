@@ -129,7 +129,7 @@ def test_no_torque_before_enable_and_torque_after(run):
 def test_drive_fault_turns_torque_off_within_four_ticks(run):
     res = run["result"]
     log = res["log"]
-    fault_cmd = [c for c in res["commands"] if c[2] == "fault"]
+    fault_cmd = [c for c in res["commands"] if c[2:] == ("inject", "inject_drive_fault")]
     assert len(fault_cmd) == 1
     injected = fault_cmd[0][0]  # tick at which the emulator's injector was told
     tau = log["tau_sent"]

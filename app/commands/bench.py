@@ -62,9 +62,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     loop.add_argument(
         "--emulator",
-        choices=("stepped", "thread"),
-        default="stepped",
-        help="with --bus: emulator stepped in the loop (default) or on its own thread",
+        choices=("process", "stepped", "thread"),
+        default="process",
+        help="with --bus: where the six emulated drives run: their own process on a socket-pair "
+        "CAN FD bus, like real drives (default); stepped inside the tick; or a thread of the "
+        "control process",
     )
     add_set_option(loop, "haptics.force_enabled=false")
     loop.set_defaults(handler=run_loop)

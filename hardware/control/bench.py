@@ -6,10 +6,15 @@ optionally while the parent process runs perception for both simulated D435s (on
 :class:`~hapticloud.hardware.sources.SimulatedCameraSource` reader thread each, feeding a
 :class:`~hapticloud.core.perception.CameraPipeline` per camera, as the session process would).
 
-Figures (µs): ``tick_us`` is the whole loop body end to end (poll feedback, commands, watchdogs,
-the haptic tick, command + SYNC, and the stepped emulator's answer); ``master_us`` without the
-control tick and the emulator (the bus I/O the loop pays); ``lateness_us`` the start of a tick
-after its deadline. A *miss* is a tick that started more than one period late or whose work ran
+Figures (µs): ``tick_us`` is the whole loop body end to end (poll feedback, commands and
+estimates, watchdogs, the fusion sample, the haptic tick, command + SYNC, the stepped emulator's
+answer when it runs in the tick, the shared-memory state, the log and the snapshot);
+``master_us`` is that without the haptic tick and the emulator; ``breakdown_us`` splits it into
+``poll`` (feedback frames in), ``inputs`` (commands, estimates, watchdogs, fusion sample),
+``send`` (command + SYNC out) and ``publish`` (state, log, snapshot); ``lateness_us`` is the start
+of a tick after its deadline. With ``emulator="process"`` (the default) the drives answer from
+their own process, as real drives do from their own hardware. A *miss* is a tick that started
+more than one period late or whose work ran
 past the next deadline (:mod:`.deadline`).
 """
 
@@ -100,7 +105,7 @@ def run_bench(
     overrides: Mapping[str, Any] | None = None,
     *,
     with_perception: bool = False,
-    emulator: str = "stepped",
+    emulator: str = "process",
     fifo_priority: int | None = 80,
     isolate_cpu: bool = False,
 ) -> dict[str, Any]:
@@ -160,7 +165,7 @@ def run_bench(
     counters = res["link_counters"]
     out: dict[str, Any] = {
         "scene": scene,
-        "bus": "python-can virtual, CAN FD",
+        "bus": info.get("bus", ""),
         "emulator": emulator,
         "with_perception": with_perception,
         "duration_s": duration_s,
@@ -181,6 +186,9 @@ def run_bench(
         "control_tick_us": _stats(log["control_us"][sel]),
         "bus_master_us": _stats(log["master_us"][sel]),
         "emulator_us": _stats(log["emulator_us"][sel]),
+        "breakdown_us": {
+            part: _stats(log[f"{part}_us"][sel]) for part in ("poll", "inputs", "send", "publish")
+        },
         "tick_without_emulator_us": _stats(tick - log["emulator_us"][sel]),
         "sched_fifo": bool(info["sched_fifo"]),
         "sched_note": info["sched_note"],
@@ -221,7 +229,7 @@ def main(
     out: TextIO,
     *,
     with_perception: bool = False,
-    emulator: str = "stepped",
+    emulator: str = "process",
 ) -> int:
     """CLI entry: print the result (one JSON object with ``as_json``)."""
     res = run_bench(

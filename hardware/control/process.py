@@ -1,41 +1,48 @@
-"""The 800 Hz control loop in its own process: drive bus I/O, the haptic tick, session, watchdogs.
+"""The 800 Hz control loop in its own process: drive bus I/O, fusion, the haptic tick, session.
 
 :class:`ControlProcess` starts one ``multiprocessing`` child (``spawn`` context, so nothing of the
 parent's threads, locks or GUI comes along). The child builds the scene's
-:class:`~hapticloud.core.loop.HapticLoop` (as ``hapticloud bench loop`` does, through
-:class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim`), a :class:`~..drives.link.DriveLink` on
-python-can's ``virtual`` CAN FD bus and the :class:`~..drives.emulator.DriveEmulator` of the six
-drives on the other end of that bus, then runs on absolute deadlines
-(:class:`~.deadline.DeadlineLoop`: SCHED_FIFO when permitted, gc frozen). One tick::
+:class:`~hapticloud.core.loop.HapticLoop` and its :class:`~hapticloud.core.fusion.SurfaceFusion`
+(through :class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim`, as ``hapticloud run`` does),
+a :class:`~..drives.link.DriveLink` and the six emulated drives on the other end of the bus, then
+runs on absolute deadlines (:class:`~.deadline.DeadlineLoop`: SCHED_FIFO when permitted, gc
+frozen, memory locked). One tick::
 
-    fb = link.poll_feedback()                       # answers to the previous SYNC
-    commands from the parent (non-blocking poll)    # enable, e-stop, surface, fault injection
-    reaction = watchdogs.check(...)                 # -> session FAULT on TORQUE_OFF
-    res = loop.tick(t, fb.position, fb.velocity, fused=latest surface)
-    link.send_command(res.tau if ENABLED and no torque-off else 0, controlwords)
-    link.send_sync()
-    emulator.step()                                 # "stepped" mode: deterministic, same thread
+    fb = link.poll_feedback()                   # answers to the previous SYNC
+    commands, estimates (non-blocking polls)    # enable, e-stop, faults; camera estimates -> fusion
+    reaction = watchdogs.check(...)             # cameras, estimate age, feedback, heartbeat, bus
+    fused = fusion.sample(t), or the held surface with the approach capped at v_min
+    res = loop.tick(t, fb.position, fb.velocity, fused=fused)
+    link.send_command(tau by session state and reaction, controlwords); link.send_sync()
+    robot state -> shared memory; every 8th tick a snapshot -> pipe (only if writable)
 
-The emulator runs either stepped in the loop right after the SYNC (``emulator="stepped"``, no bus
-timing model: answers are ready for the next tick, deterministic) or live on its own thread in
-the child (``emulator="thread"``, with the bus timing model; that thread competes for the GIL).
+The drives run in their own process by default (``emulator="process"``, on a
+:class:`~..drives.transport.SocketPairBus`), like real drives on their own hardware; ``"stepped"``
+runs them in the tick right after the SYNC (deterministic: tests), ``"thread"`` on a thread of the
+child with the bus timing model.
 
 Parent -> child: a one-way pipe of small commands (``enable``, ``disable``, ``estop``,
-``reset``, ``surface`` with a :class:`~hapticloud.core.fusion.FusedSurface`, ``fault``,
-``stop``); the loop reads what is there and never waits. Child -> parent: a one-way pipe of
-:class:`ControlSnapshot` every ``snapshot_every`` ticks, written only when ``select`` says the
-pipe is writable (snapshots are < 1 KiB, below ``PIPE_BUF``, so such a write never blocks); a
-snapshot that does not fit is dropped and counted. The loop never waits on a reader.
+``reset``, ``inject`` a fault, ``stop``) and a second one of camera estimates and frame times
+(:attr:`ControlProcess.estimate_connection`, which a perception process may hold instead of the
+parent). The loop reads what is there and never waits. Child -> parent: a one-way pipe of
+:class:`ControlSnapshot` every ``snapshot_every`` ticks, written only when ``select`` says the pipe
+is writable (snapshots are < 4 KiB, at most ``PIPE_BUF``, so such a write does not block); a
+snapshot that does not fit is dropped and counted. The robot's state (HIP, q) is also written
+every tick to a :class:`~.shared_state.RobotStateBlock` under a sequence lock, for perception to
+crop around.
 
-Torque leaves the link only while the session is ENABLED and the watchdogs are not at
-TORQUE_OFF; the link itself additionally blocks torque to any drive not in OPERATION ENABLED and
-clamps to the drive limits. Every tick is recorded (times, torques sent, session state, reaction
-level, drive fault flag) and returned by :meth:`ControlProcess.stop`, so tests assert reactions
-from the log, not from sleeping. SIGINT in the child is an emergency stop.
+Reactions (:mod:`hapticloud.hardware.session.watchdogs`): HOLD_SURFACE keeps the last fused
+surface, still, and caps the approach speed at ``hold_v_min_m_s``; DAMPING sends gravity and
+Coriolis compensation minus joint damping; TORQUE_OFF (and every state but ENABLED) sends zero
+torque; the link itself also blocks torque to any drive not in OPERATION ENABLED and clamps to
+the drive limits. Every tick is recorded (times, torques sent, state, reaction level, distance,
+approach speed and its cap) and returned by :meth:`ControlProcess.stop`, so tests assert
+reactions from the log, not from sleeping. SIGINT in the child is an emergency stop.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import multiprocessing as mp
@@ -49,11 +56,24 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ..drives.faults import FAULT_METHODS
 from .deadline import DeadlineLoop
 
-__all__ = ["STATE_CODES", "ControlProcess", "ControlSnapshot"]
+__all__ = [
+    "EMULATOR_MODES",
+    "FAULT_METHODS",
+    "STATE_CODES",
+    "ControlProcess",
+    "ControlSnapshot",
+    "estimate_from_wire",
+    "estimate_to_wire",
+    "send_camera_frame",
+    "send_estimate",
+]
 
 PERIOD_S = 1.0 / 800.0
+#: Where the emulated drives run (see :class:`ControlProcess`).
+EMULATOR_MODES = ("process", "stepped", "thread")
 
 #: Integer codes of the session states in the recorded log (``log["state"]``).
 STATE_CODES = {
@@ -69,7 +89,14 @@ _channels = itertools.count()
 
 
 class ControlSnapshot(NamedTuple):
-    """What the control process publishes every ``snapshot_every`` ticks (small, picklable)."""
+    """What the control process publishes every ``snapshot_every`` ticks (small, picklable).
+
+    Times are :func:`time.monotonic` seconds (system-wide). ``force_n`` is the constraint force at
+    the HIP: the Cartesian force whose ``J^T f`` is the torque beyond transparency
+    (``tau_sent - h``), least squares. ``events`` are the session transitions and watchdog
+    reaction changes since the previous snapshot that got out: ``(t, kind, text)`` with kind
+    ``"state"`` or ``"reaction"``.
+    """
 
     seq: int
     tick: int
@@ -77,14 +104,25 @@ class ControlSnapshot(NamedTuple):
     state: str
     reaction: str
     reaction_source: str
+    reaction_reason: str
     q: tuple[float, ...]
     qd: tuple[float, ...]
     tau_sent: tuple[float, ...]
+    hip_m: tuple[float, float, float]
+    force_n: tuple[float, float, float]
     d_proj_m: float
+    min_d_proj_m: float
+    approach_mps: float
+    fused_valid: bool
+    estimate_age_s: float
+    camera_age_s: tuple[tuple[str, float], ...]
     tick_us: float
+    tick_us_max: float
+    control_rate_hz: float
     misses: int
     dropped_snapshots: int
     bus_load: float
+    events: tuple[tuple[float, str, str], ...]
 
 
 # ----- the child ---------------------------------------------------------------------------------
@@ -100,7 +138,15 @@ _LOG_FIELDS = (
     "reaction",
     "any_fault",
     "complete",
+    "d_proj_m",
+    "approach_mps",
+    "approach_limit_mps",
+    "poll_us",
+    "inputs_us",
+    "send_us",
+    "publish_us",
 )
+_MAX_EVENTS_PER_SNAPSHOT = 8
 
 
 def _writable(fd: int) -> bool:
@@ -124,9 +170,9 @@ def _lock_memory() -> tuple[bool, str]:
     return True, "mlockall(MCL_CURRENT | MCL_FUTURE)"
 
 
-def _child_main(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
+def _child_main(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: Any) -> None:
     try:
-        _run_child(params, cmd_conn, out_conn)
+        _run_child(params, cmd_conn, out_conn, est_conn)
     except BaseException:
         try:
             out_conn.send(("error", traceback.format_exc()))
@@ -134,15 +180,62 @@ def _child_main(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
             pass
 
 
-def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
+def estimate_to_wire(est: Any) -> tuple[Any, ...]:
+    """The part of a :class:`~hapticloud.core.perception.SurfaceEstimate` the fusion needs, as a
+    small tuple (the full estimate carries clouds and does not pickle its timing table)."""
+    return (
+        float(est.t),
+        str(est.camera),
+        tuple(float(x) for x in est.centroid),
+        tuple(float(x) for x in est.normal),
+        bool(est.valid),
+        float(est.quality),
+        str(est.reason),
+        str(est.method),
+        int(est.seq),
+    )
+
+
+def estimate_from_wire(wire: tuple[Any, ...]) -> Any:
+    from hapticloud.core.perception import SurfaceEstimate
+
+    t, camera, centroid, normal, valid, quality, reason, method, seq = wire
+    return SurfaceEstimate(
+        t,
+        camera,
+        np.array(centroid),
+        np.array(normal),
+        valid,
+        reason=reason,
+        method=method,
+        quality=quality,
+        seq=seq,
+    )
+
+
+def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: Any) -> None:
     import can
+    from hapticloud.core.fusion import SurfaceFusion
+    from hapticloud.core.loop import admit
     from hapticloud.core.robot.model import RobotModel
     from hapticloud.core.scene import load_scene
     from hapticloud.core.sim.closed_loop import ClosedLoopSim
+    from hapticloud.core.threads import limit_blas_threads
 
     from ..drives import DriveBusConfig, DriveEmulator, DriveLink, DriveTarget, EmulatorConfig
-    from ..session import SessionState, SessionStateMachine, Watchdogs, apply_reaction
+    from ..drives.emulator_process import EmulatorHandle
+    from ..drives.transport import SocketPairBus
+    from ..session import ReactionLevel as L
+    from ..session import (
+        SessionState,
+        SessionStateMachine,
+        WatchdogConfig,
+        Watchdogs,
+        apply_reaction,
+    )
+    from .shared_state import RobotStateBlock
 
+    limit_blas_threads(1)
     estop_flag = [False]
 
     def _on_sigint(signum: int, frame: Any) -> None:
@@ -152,26 +245,65 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
 
     period = float(params["period_s"])
     loaded = load_scene(params["scene"], params.get("overrides"))
+    camera_specs = {c.name: c for c in loaded.cameras}
     if loaded.cameras:
-        loaded = loaded.with_overrides(
-            {f"cameras.{c.name}.model": "oracle" for c in loaded.cameras}
-        )
+        # The cameras are the parent's (perception runs outside the loop): the scene's own
+        # simulated cameras would render inside the tick.
+        loaded = loaded.with_overrides({f"cameras.{name}.model": "oracle" for name in camera_specs})
     sim = ClosedLoopSim(loaded)
     hloop = sim.loop
+    robot = hloop.robot
+    fusion = hloop.fusion
     model = RobotModel.load(loaded.config.robot.urdf or None)
     cfg = DriveBusConfig(cycle_rate_hz=1.0 / period).for_model(model)
-    stepped = params["emulator"] == "stepped"
-    ecfg = EmulatorConfig(model_bus_timing=not stepped, drive_response_s=0.0 if stepped else 20e-6)
-    channel = f"hapticloud-control-{os.getpid()}-{next(_channels)}"
-    fd = can.CanProtocol.CAN_FD
-    master_bus = can.Bus(interface="virtual", channel=channel, protocol=fd)
-    drive_bus = can.Bus(interface="virtual", channel=channel, protocol=fd, preserve_timestamps=True)
-    link = DriveLink(master_bus, cfg)
-    emu = DriveEmulator(drive_bus, cfg, ecfg, model=model, q0=sim.q0)
+    mode = params["emulator"]
+    stepped = mode == "stepped"
+    wd_cfg = WatchdogConfig.from_dict(params["watchdogs"]) if params.get("watchdogs") else None
+    wd = Watchdogs(wd_cfg)
     machine = SessionStateMachine(t=time.monotonic())
-    wd = Watchdogs()
+    emu = None
+    emu_proc = None
+    if mode == "process":
+        master_bus = SocketPairBus(params["bus_socket"], channel="master")
+        drive_bus = None
+        emu_proc = EmulatorHandle(params["emulator_conn"])
+        emu_proc.init(
+            {
+                "bus": cfg,
+                "emulator": EmulatorConfig(),
+                "urdf": loaded.config.robot.urdf or None,
+                "q0": sim.q0,
+                "fifo_priority": (
+                    None if params["fifo_priority"] is None else params["fifo_priority"] - 10
+                ),
+                "dynamics": params.get("dynamics"),
+            },
+        )
+        emu_proc.wait_ready()
+    else:
+        ecfg = EmulatorConfig(
+            model_bus_timing=not stepped, drive_response_s=0.0 if stepped else 20e-6
+        )
+        channel = f"hapticloud-control-{os.getpid()}-{next(_channels)}"
+        fd = can.CanProtocol.CAN_FD
+        master_bus = can.Bus(interface="virtual", channel=channel, protocol=fd)
+        drive_bus = can.Bus(
+            interface="virtual", channel=channel, protocol=fd, preserve_timestamps=True
+        )
+        dynamics = params.get("dynamics")
+        emu = DriveEmulator(
+            drive_bus,
+            cfg,
+            ecfg,
+            model=model,
+            q0=sim.q0,
+            dynamics=dynamics(model) if dynamics is not None else None,
+        )
+    link = DriveLink(master_bus, cfg)
+    state_block = RobotStateBlock.attach(params["state_block"], robot.n_joints)
     n = link.n_drives
     zeros = np.zeros(n)
+    damping = float(params["damping_nms"])
     cap = int(params["log_ticks"])
     # Filled, not just zeroed: every page is touched now, not on the first write in the loop.
     log = {f: np.full(cap, 0.0) for f in _LOG_FIELDS}
@@ -179,18 +311,22 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
     snap_every = int(params["snapshot_every"])
     out_fd = out_conn.fileno()
     dl = DeadlineLoop(period, spin_s=float(params["spin_s"]), fifo_priority=params["fifo_priority"])
+    codes = {s: STATE_CODES[s.value] for s in SessionState}
     try:
         # Start-up, outside the timed loop: NMT start, drives to READY TO SWITCH ON.
-        emu.step()
+        if emu is not None:
+            emu.step()
         link.start_nodes()
-        emu.step()
+        if emu is not None:
+            emu.step()
 
         def pump() -> None:
             time.sleep(period)
-            emu.step()
+            if emu is not None:
+                emu.step()
 
         link.run_sequence(DriveTarget.DISABLED, timeout_s=2.0, pump=pump)
-        if not stepped:
+        if mode == "thread" and emu is not None:
             emu.start()
         cpu = params.get("cpu")
         pinned = None
@@ -212,59 +348,106 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
                     "cpu": pinned,
                     "mlockall": locked,
                     "mlockall_note": lock_note,
-                    "emulator": params["emulator"],
-                    "channel": channel,
+                    "emulator": mode,
+                    "emulator_info": emu_proc.info if emu_proc is not None else None,
+                    "bus": "socketpair (CAN FD)" if mode == "process" else "virtual (CAN FD)",
+                    "cameras": list(camera_specs),
+                    "torque_limits_nm": [float(x) for x in link.torque_limits],
                 },
             )
         )
-        fused = None
-        surface_t = -math.inf
-        fed_surfaces = False
+        held = None  # the last valid fused surface, still (velocity zero)
+        est_time = -math.inf  # capture time of the newest admitted estimate
+        fed_estimates = False
+        camera_last: dict[str, float] = {}
         fault_reset_ticks = 0
         seq = 0
         dropped = 0
         events: list[tuple[int, float, str, str]] = []
+        pending_events: list[tuple[float, str, str]] = []
+        last_tr: Any = None
+        last_r: Any = None
+        min_d = math.inf
+        tick_max = 0.0
+        rate_t, rate_i, rate = time.monotonic(), 0, 0.0
         duration = params.get("duration_s")
         t_begin = time.monotonic()
         last_fb = None
         running = True
         i = 0
+        est_fd = est_conn.fileno() if est_conn is not None else -1
+
+        def handle(cmd: tuple[Any, ...], t: float) -> bool:
+            nonlocal fault_reset_ticks, fusion
+            name = cmd[0]
+            if name == "stop":
+                return False
+            if name == "enable":
+                machine.enable(t, cmd[1] if len(cmd) > 1 else "enable requested")
+            elif name == "disable":
+                machine.disable(t, "disable requested")
+            elif name == "estop":
+                machine.emergency_stop(t, cmd[1] if len(cmd) > 1 else "emergency stop")
+            elif name == "reset":
+                ok, why = wd.reset(t)
+                machine.reset(t, cleared=ok, reason=why)
+                fault_reset_ticks = 8
+            elif name == "configure":
+                haptics_cfg, fusion_cfg = cmd[1], cmd[2]
+                if haptics_cfg is not None:
+                    hloop.configure(haptics_cfg)
+                if fusion_cfg is not None and fusion is not None:
+                    # A new window (SurfaceFusion has no in-place reconfiguration).
+                    fusion = SurfaceFusion(fusion_cfg)
+                    hloop.fusion = fusion
+            elif name == "inject":
+                if emu_proc is not None:
+                    emu_proc.inject(cmd[1], cmd[2], cmd[3])
+                elif emu is not None:
+                    _inject(emu.faults, cmd[1], cmd[2], cmd[3])
+            detail = {"inject": cmd[1] if len(cmd) > 1 else ""}
+            events.append((i, t, name, detail.get(name, "")))
+            return True
+
+        def take_estimates(t: float) -> bool:
+            nonlocal est_time, fed_estimates
+            added = False
+            while est_conn.poll():
+                try:
+                    kind, payload = est_conn.recv()
+                except (EOFError, OSError):
+                    return added
+                if kind == "camera":
+                    name, t_frame = payload
+                    camera_last[name] = max(camera_last.get(name, -math.inf), float(t_frame))
+                    continue
+                est = estimate_from_wire(payload)
+                camera_last[est.camera] = max(camera_last.get(est.camera, -math.inf), est.t)
+                fed_estimates = True
+                spec = camera_specs.get(est.camera)
+                min_q = spec.min_quality if spec is not None else 0.0
+                fallbacks = spec.fuse_fallbacks if spec is not None else False
+                if fusion is not None and admit(est, min_q, fallbacks) and fusion.add(est):
+                    est_time = max(est_time, est.t)
+                    added = True
+            return added
+
         while running:
             k, _ = dl.wait()
             p0 = time.perf_counter()
             t = time.monotonic()
             fb = link.poll_feedback()
-            # Commands from the parent: whatever is there, never waiting.
-            while cmd_conn.poll():
-                try:
-                    cmd = cmd_conn.recv()
-                except (EOFError, OSError):
-                    # The parent is gone: stop (torque off on the way out).
-                    running = False
-                    events.append((i, t, "stop", "parent gone"))
-                    break
-                name = cmd[0]
-                if name == "stop":
-                    running = False
-                elif name == "enable":
-                    machine.enable(t, cmd[1] if len(cmd) > 1 else "enable requested")
-                elif name == "disable":
-                    machine.disable(t, "disable requested")
-                elif name == "estop":
-                    machine.emergency_stop(t, cmd[1] if len(cmd) > 1 else "emergency stop")
-                elif name == "reset":
-                    ok, why = wd.reset(t)
-                    machine.reset(t, cleared=ok, reason=why)
-                    fault_reset_ticks = 8
-                elif name == "surface":
-                    fused = cmd[1]
-                    surface_t = t
-                    fed_surfaces = True
-                elif name == "fault":
-                    emu.faults.inject_drive_fault(int(cmd[1]), **cmd[2])
-                elif name == "clear_fault":
-                    emu.faults.clear_drive_fault(int(cmd[1]))
-                events.append((i, t, name, "" if name != "surface" else "fused surface"))
+            p_poll = time.perf_counter()
+            # Commands and estimates from the parent(s): whatever is there, never waiting.
+            try:
+                while running and cmd_conn.poll():
+                    running = handle(cmd_conn.recv(), t)
+            except (EOFError, OSError):
+                # The parent is gone: stop (torque off on the way out).
+                running = False
+                events.append((i, t, "stop", "parent gone"))
+            if est_fd >= 0 and take_estimates(t) and fusion is not None:
+                fusion.prepare()
             if estop_flag[0]:
                 estop_flag[0] = False
                 machine.emergency_stop(t, "SIGINT")
@@ -277,27 +460,43 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
                     machine.connect(t, "drive feedback complete")
                     machine.drives_ready(t, "drives ready to switch on")
             else:
-                fb_age = float(fb.age_s.max())
-                est_age = (t - surface_t) if fed_surfaces else 0.0
                 reaction = wd.check(
                     t,
-                    {},
-                    est_age,
-                    fb_age,
+                    camera_last,
+                    (t - est_time) if fed_estimates else 0.0,
+                    float(fb.age_s.max()),
                     bool(fb.heartbeat_lost.any()),
                     bool(fb.any_fault),
                     bool(fb.bus_off),
                 )
                 apply_reaction(machine, reaction, t)
             reaction = wd.reaction
+            level = reaction.level
+            # Hold the last surface, still, with the approach speed capped at v_min.
+            if level >= L.HOLD_SURFACE:
+                hloop.approach_limit_mps = wd.config.hold_v_min_m_s
+                fused = held
+            else:
+                hloop.approach_limit_mps = None
+                fused = fusion.sample(t) if fusion is not None else None
+                if fused is not None and fused.valid:
+                    held = fused
+            if held is not None and level >= L.HOLD_SURFACE and held.velocity.any():
+                held = dataclasses.replace(held, velocity=_ZERO3)
+                fused = held
             p1 = time.perf_counter()
             res = hloop.tick(t, fb.position_rad, fb.velocity_rad_s, fused=fused)
             p2 = time.perf_counter()
             state = machine.state
-            torque = state is SessionState.ENABLED and not reaction.torque_off
+            torque = state is SessionState.ENABLED and level < L.TORQUE_OFF
             if torque:
                 target = DriveTarget.ENABLED
-                tau = res.tau
+                if level >= L.DAMPING:
+                    # Gravity and Coriolis compensated, joint velocities damped: the arm comes
+                    # to rest where it is and the patient can move it gently.
+                    tau = robot.nonlinear_effects() - damping * fb.velocity_rad_s
+                else:
+                    tau = res.tau
             else:
                 tau = zeros
                 if state is SessionState.EMERGENCY_STOP:
@@ -310,27 +509,66 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
             sent = link.send_command(tau, link.controlwords(target))
             link.send_sync()
             p3 = time.perf_counter()
-            if stepped:
+            if emu is not None and stepped:
                 emu.step()
             p4 = time.perf_counter()
+            d_now = float(res.d_proj_m)
+            if d_now < min_d and state is SessionState.ENABLED:
+                min_d = d_now
+            state_block.write(
+                t,
+                i,
+                codes[state],
+                int(level),
+                robot.hip_position(),
+                robot.hip_velocity(),
+                fb.position_rad,
+                fb.velocity_rad_s,
+            )
+            tick_us = (p4 - p0) * 1e6
+            if tick_us > tick_max:
+                tick_max = tick_us
             if i < cap:
                 log["t"][i] = t
                 log["k"][i] = k
                 log["lateness_us"][i] = (p0 - (dl.t0 + k * period)) * 1e6
-                log["tick_us"][i] = (p4 - p0) * 1e6
-                log["master_us"][i] = (p4 - p0 - (p2 - p1) - (p4 - p3)) * 1e6
                 log["control_us"][i] = (p2 - p1) * 1e6
                 log["emulator_us"][i] = (p4 - p3) * 1e6
-                log["state"][i] = STATE_CODES[state.value]
-                log["reaction"][i] = int(reaction.level)
+                log["state"][i] = codes[state]
+                log["reaction"][i] = int(level)
                 log["any_fault"][i] = fb.any_fault
                 log["complete"][i] = fb.complete
+                log["d_proj_m"][i] = d_now
+                log["approach_mps"][i] = res.approach_mps
+                lim = hloop.approach_limit_mps
+                log["approach_limit_mps"][i] = math.nan if lim is None else lim
+                log["poll_us"][i] = (p_poll - p0) * 1e6
+                log["inputs_us"][i] = (p1 - p_poll) * 1e6
+                log["send_us"][i] = (p3 - p2) * 1e6
                 log_tau[i] = sent
             if i % snap_every == 0:
+                # Session and watchdog changes since the last snapshot that got out.
+                trs = machine.log
+                if trs and trs[-1] is not last_tr:
+                    for tr in _after(trs, last_tr):
+                        pending_events.append(
+                            (tr.t, "state", f"{tr.to_state.value}: {tr.reason}"[:160])
+                        )
+                    last_tr = trs[-1]
+                rlog = wd.log
+                if rlog and rlog[-1] is not last_r:
+                    for r in _after(rlog, last_r):
+                        pending_events.append(
+                            (r.t, "reaction", f"{r.level.name} {r.source}: {r.reason}"[:160])
+                        )
+                    last_r = rlog[-1]
                 if _writable(out_fd):
                     seq += 1
                     load = fb.bus_load_since(last_fb) if last_fb is not None else math.nan
                     last_fb = fb
+                    if t - rate_t >= 0.5:
+                        rate = (i - rate_i) / (t - rate_t)
+                        rate_t, rate_i = t, i
                     out_conn.send(
                         (
                             "snap",
@@ -339,26 +577,45 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
                                 i,
                                 t,
                                 state.value,
-                                reaction.level.name,
+                                level.name,
                                 reaction.source,
+                                reaction.reason[:160],
                                 tuple(fb.position_rad.tolist()),
                                 tuple(fb.velocity_rad_s.tolist()),
                                 tuple(sent.tolist()),
-                                float(res.d_proj_m),
-                                (p4 - p0) * 1e6,
+                                tuple(robot.hip_position().tolist()),
+                                _constraint_force(robot, sent),
+                                d_now,
+                                min_d,
+                                float(res.approach_mps),
+                                bool(res.fused_valid),
+                                (t - est_time) if fed_estimates else math.nan,
+                                tuple((c, t - v) for c, v in camera_last.items()),
+                                tick_us,
+                                tick_max,
+                                rate,
                                 dl._misses,
                                 dropped,
                                 load,
+                                tuple(pending_events[-_MAX_EVENTS_PER_SNAPSHOT:]),
                             ),
                         )
                     )
+                    pending_events.clear()
+                    tick_max = 0.0
                 else:
                     dropped += 1
+            if i < cap:
+                # The whole body, publishing included: what the deadline sees.
+                p_end = time.perf_counter()
+                log["publish_us"][i] = (p_end - p4) * 1e6
+                log["tick_us"][i] = (p_end - p0) * 1e6
+                log["master_us"][i] = (p_end - p0 - (p2 - p1) - (p4 - p3)) * 1e6
             i += 1
             dl.done()
     finally:
         dl.stop()
-        if not stepped:
+        if emu is not None and not stepped:
             emu.stop()
         # Leave the drives without torque.
         try:
@@ -366,8 +623,13 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
             link.send_sync()
         except Exception:
             pass
+        emu_events = emu_proc.stop() if emu_proc is not None else []
         master_bus.shutdown()
-        drive_bus.shutdown()
+        if drive_bus is not None:
+            drive_bus.shutdown()
+        state_block.close()
+    if emu is not None:
+        emu_events = [tuple(e) for e in emu.events()][-256:]
     m = min(i, cap)
     stats = dl.stats().as_dict()
     out_conn.send(
@@ -377,7 +639,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
                 "ticks": i,
                 "deadline": stats,
                 "link_counters": link.counters._asdict(),
-                "emulator_events": [tuple(e) for e in emu.events()][-256:],
+                "link_events": [tuple(e) for e in link.pop_events()][-256:],
+                "emulator_events": emu_events,
                 "transitions": [
                     (tr.t, tr.from_state.value, tr.to_state.value, tr.reason) for tr in machine.log
                 ],
@@ -390,6 +653,38 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any) -> None:
             },
         )
     )
+
+
+def _after(log: tuple[Any, ...], last: Any) -> list[Any]:
+    """The entries of a bounded log after ``last`` (by identity), oldest first."""
+    out = []
+    for item in reversed(log):
+        if item is last:
+            break
+        out.append(item)
+    out.reverse()
+    return out
+
+
+_ZERO3 = np.zeros(3)
+_ZERO3.setflags(write=False)
+
+
+def _constraint_force(robot: Any, tau: np.ndarray) -> tuple[float, float, float]:
+    """Cartesian force at the HIP for the torque beyond transparency, ``J^T f = tau - h``."""
+    if not np.any(tau):
+        return (0.0, 0.0, 0.0)
+    jac = robot.hip_jacobian()
+    f, *_ = np.linalg.lstsq(jac.T, tau - robot.nonlinear_effects(), rcond=None)
+    if not np.isfinite(f).all():
+        return (0.0, 0.0, 0.0)
+    return (float(f[0]), float(f[1]), float(f[2]))
+
+
+def _inject(faults: Any, method: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
+    if method not in FAULT_METHODS:
+        raise ValueError(f"fault method {method!r}: expected one of {', '.join(FAULT_METHODS)}")
+    getattr(faults, method)(*args, **kwargs)
 
 
 def _busy_per_cycle(cfg: Any) -> dict[str, float] | None:
@@ -409,17 +704,22 @@ class ControlProcess:
     Parameters
     ----------
     scene
-        Scene file or shipped name; its robot, walls and haptics configure the tick.
+        Scene file or shipped name; its robot, walls, cameras and haptics configure the tick.
     overrides
         ``--set`` style overrides for the scene.
     period_s
         Control period (1/800 s).
     fifo_priority
-        SCHED_FIFO priority to try in the child (``None``: do not try); falls back cleanly.
+        SCHED_FIFO priority to try in the child (``None``: do not try); falls back cleanly. The
+        emulator process, if any, asks for 10 less.
     spin_s
         Spin before each deadline (s).
     emulator
-        ``"stepped"`` (in the loop, after the SYNC) or ``"thread"`` (live thread in the child).
+        Where the six emulated drives run: ``"process"`` (their own process, on a
+        :class:`~..drives.transport.SocketPairBus`, like real drives: the default),
+        ``"stepped"`` (in the loop right after the SYNC: deterministic, for tests; the tick then
+        includes the drives' work) or ``"thread"`` (a thread of the control process, with the
+        bus timing model; it competes for the loop's GIL).
     snapshot_every
         Publish a :class:`ControlSnapshot` every this many ticks (8: 100 Hz).
     log_ticks
@@ -428,6 +728,13 @@ class ControlProcess:
         Stop on its own after this long (s of the child's clock); ``None``: on :meth:`stop`.
     cpu
         Pin the loop to this CPU (``None``: no pinning; a refused pin is ignored).
+    watchdogs
+        :class:`~..session.WatchdogConfig` fields to override (``{"camera_timeout_s": 0.2}``).
+    damping_nms
+        Joint damping of the DAMPING reaction (N m s/rad).
+    dynamics
+        ``None`` (rigid arm) or a picklable callable ``model -> ArmDynamics`` for the emulated
+        arm (e.g. one with a simulated patient pushing the handle).
     """
 
     def __init__(
@@ -438,14 +745,25 @@ class ControlProcess:
         period_s: float = PERIOD_S,
         fifo_priority: int | None = 80,
         spin_s: float = 200e-6,
-        emulator: str = "stepped",
+        emulator: str = "process",
         snapshot_every: int = 8,
         log_ticks: int = 1 << 16,
         duration_s: float | None = None,
         cpu: int | None = None,
+        watchdogs: Mapping[str, Any] | None = None,
+        damping_nms: float = 2.0,
+        dynamics: Any = None,
     ) -> None:
-        if emulator not in ("stepped", "thread"):
-            raise ValueError(f"emulator = {emulator!r}: expected 'stepped' or 'thread'")
+        if emulator not in EMULATOR_MODES:
+            raise ValueError(
+                f"emulator = {emulator!r}: expected one of {', '.join(EMULATOR_MODES)}"
+            )
+        if not (math.isfinite(damping_nms) and damping_nms >= 0.0):
+            raise ValueError(f"damping_nms = {damping_nms}: must be >= 0")
+        if watchdogs:
+            from ..session import WatchdogConfig
+
+            WatchdogConfig.from_dict(dict(watchdogs))  # refuse a bad one here, not in the child
         self._params = {
             "scene": scene,
             "overrides": dict(overrides) if overrides else None,
@@ -457,11 +775,17 @@ class ControlProcess:
             "log_ticks": int(log_ticks),
             "duration_s": duration_s,
             "cpu": cpu,
+            "watchdogs": dict(watchdogs) if watchdogs else None,
+            "damping_nms": float(damping_nms),
+            "dynamics": dynamics,
         }
         self._ctx = mp.get_context("spawn")
         self._proc: Any = None
         self._cmd: Any = None
         self._out: Any = None
+        self._est: Any = None
+        self._block: Any = None
+        self._emu_proc: Any = None
         self._snaps: list[ControlSnapshot] = []
         self._latest: ControlSnapshot | None = None
         self.info: dict[str, Any] | None = None
@@ -473,19 +797,33 @@ class ControlProcess:
         """Start the child and wait until its loop runs; returns its start-up info."""
         if self._proc is not None:
             raise RuntimeError("control process already started")
+        from .shared_state import RobotStateBlock
+
         cmd_r, cmd_w = self._ctx.Pipe(duplex=False)
         out_r, out_w = self._ctx.Pipe(duplex=False)
+        est_r, est_w = self._ctx.Pipe(duplex=False)
+        self._block = RobotStateBlock.create()
+        params = dict(self._params, state_block=self._block.name)
+        ends: tuple[Any, ...] = ()
+        if params["emulator"] == "process":
+            from ..drives.emulator_process import spawn_emulator
+            from ..drives.transport import socket_pair
+
+            bus_master, bus_drives = socket_pair()
+            self._emu_proc, emu_conn = spawn_emulator(bus_drives)
+            params["bus_socket"], params["emulator_conn"] = bus_master, emu_conn
+            ends = (bus_master, bus_drives, emu_conn)
         self._proc = self._ctx.Process(
             target=_child_main,
-            args=(self._params, cmd_r, out_w),
+            args=(params, cmd_r, out_w, est_r),
             name="hapticloud-control",
             daemon=True,
         )
         self._proc.start()
-        cmd_r.close()
-        out_w.close()
-        self._cmd, self._out = cmd_w, out_r
-        end = time.monotonic() + timeout
+        for end in (cmd_r, out_w, est_r, *ends):
+            end.close()
+        self._cmd, self._out, self._est = cmd_w, out_r, est_w
+        end_t = time.monotonic() + timeout
         while self.info is None and self.error is None:
             if self._out.poll(0.1):
                 self._pump_one()
@@ -495,7 +833,7 @@ class ControlProcess:
                 if self.info is None and self.error is None:
                     self.error = f"exit code {self._proc.exitcode}"
                 break
-            if time.monotonic() > end:
+            if time.monotonic() > end_t:
                 self.stop(1.0)
                 raise TimeoutError("control process did not start in time")
         if self.info is None:
@@ -508,9 +846,13 @@ class ControlProcess:
         try:
             kind, payload = self._out.recv()
         except (EOFError, OSError):
+            if self.error is None and self.result is None:
+                self.error = "the control process closed its pipe (it died)"
             return
         if kind == "snap":
             self._snaps.append(payload)
+            if len(self._snaps) > 4096:
+                del self._snaps[:-4096]
             self._latest = payload
         elif kind == "ready":
             self.info = payload
@@ -567,13 +909,20 @@ class ControlProcess:
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(2.0)
-        for conn in (self._cmd, self._out):
+        for conn in (self._cmd, self._out, self._est):
             try:
                 conn.close()
             except OSError:
                 pass
+        if self._block is not None:
+            self._block.close()
+        if self._emu_proc is not None:
+            from ..drives.emulator_process import join_process
+
+            join_process(self._emu_proc, 3.0)
+            self._emu_proc = None
         self._proc = None
-        self._cmd = self._out = None
+        self._cmd = self._out = self._est = self._block = None
         return self.result
 
     def __enter__(self) -> ControlProcess:
@@ -594,22 +943,68 @@ class ControlProcess:
         self._send("estop", reason)
 
     def reset(self) -> None:
+        """Clear a FAULT or EMERGENCY_STOP (refused while a torque-off cause is still active)."""
         self._send("reset")
 
-    def send_surface(self, fused: Any) -> None:
-        """A new :class:`~hapticloud.core.fusion.FusedSurface` for the tick (latest wins)."""
-        self._send("surface", fused)
+    def configure(self, *, haptics: Any = None, fusion: Any = None) -> None:
+        """New :class:`~hapticloud.core.loop.HapticsConfig` and/or
+        :class:`~hapticloud.core.fusion.FusionConfig` for the loop, applied at its next tick
+        (validated configs only: they validate on construction)."""
+        from hapticloud.core.fusion import FusionConfig
+        from hapticloud.core.loop import HapticsConfig
+
+        if haptics is not None and not isinstance(haptics, HapticsConfig):
+            raise TypeError(f"haptics: expected HapticsConfig, got {type(haptics).__name__}")
+        if fusion is not None and not isinstance(fusion, FusionConfig):
+            raise TypeError(f"fusion: expected FusionConfig, got {type(fusion).__name__}")
+        self._send("configure", haptics, fusion)
+
+    def inject_fault(self, method: str, *args: Any, **kwargs: Any) -> None:
+        """Call ``method`` of the drive emulator's :class:`~..drives.FaultInjector` (one of
+        :data:`FAULT_METHODS`) at the start of the loop's next tick (tests, demos)."""
+        if method not in FAULT_METHODS:
+            raise ValueError(f"fault method {method!r}: expected one of {', '.join(FAULT_METHODS)}")
+        self._send("inject", method, tuple(args), dict(kwargs))
 
     def inject_drive_fault(self, drive: int, **kwargs: Any) -> None:
-        """Tell the emulator's fault injector to fault ``drive`` (tests, demos)."""
-        self._send("fault", drive, kwargs)
+        """Fault ``drive`` (:meth:`FaultInjector.inject_drive_fault`)."""
+        self.inject_fault("inject_drive_fault", drive, **kwargs)
 
     def clear_drive_fault(self, drive: int) -> None:
-        self._send("clear_fault", drive)
+        self.inject_fault("clear_drive_fault", drive)
+
+    # ----- perception in ------------------------------------------------------------------------
+    @property
+    def estimate_connection(self) -> Any:
+        """The write end of the estimates pipe: hand it to the perception process (picklable
+        at spawn) and send with :func:`send_estimate` / :func:`send_camera_frame` there."""
+        if self._est is None:
+            raise RuntimeError("control process not started")
+        return self._est
+
+    def send_estimate(self, est: Any) -> None:
+        """A camera's :class:`~hapticloud.core.perception.SurfaceEstimate` for the loop's fusion
+        (also counts as that camera's frame for the camera watchdog)."""
+        send_estimate(self.estimate_connection, est)
+
+    def camera_frame(self, camera: str, t: float) -> None:
+        """A frame from ``camera`` captured at ``t`` (time.monotonic) without an estimate."""
+        send_camera_frame(self.estimate_connection, camera, t)
 
     # ----- observation --------------------------------------------------------------------------
+    @property
+    def state_block_name(self) -> str:
+        """Name of the shared :class:`~.shared_state.RobotStateBlock` (attach from anywhere)."""
+        if self._block is None:
+            raise RuntimeError("control process not started")
+        return self._block.name
+
+    def robot_state(self) -> Any:
+        """The loop's current :class:`~.shared_state.RobotState` (``None`` before a tick)."""
+        return None if self._block is None else self._block.read()
+
     def snapshots(self) -> list[ControlSnapshot]:
-        """Every snapshot received since the last call (non-blocking)."""
+        """Every snapshot received since the last call (non-blocking; the newest 4096)."""
         self._pump()
         out, self._snaps = self._snaps, []
         return out
@@ -618,3 +1013,13 @@ class ControlProcess:
     def latest(self) -> ControlSnapshot | None:
         self._pump()
         return self._latest
+
+
+def send_estimate(conn: Any, est: Any) -> None:
+    """Send an estimate down a :attr:`ControlProcess.estimate_connection` (from any process)."""
+    conn.send(("estimate", estimate_to_wire(est)))
+
+
+def send_camera_frame(conn: Any, camera: str, t: float) -> None:
+    """Tell the loop that ``camera`` delivered a frame at ``t`` (for its watchdog)."""
+    conn.send(("camera", (str(camera), float(t))))

@@ -15,8 +15,9 @@ def main(argv: list[str] | None = None) -> int:
     load.add_argument("--json", action="store_true")
     dbc = sub.add_parser("dbc", help="write the DBC of the protocol")
     dbc.add_argument("path", type=Path)
-    bench = sub.add_parser("bench", help="cost of one cycle on the virtual bus")
+    bench = sub.add_parser("bench", help="cost of one bus cycle (socketpair and virtual)")
     bench.add_argument("--cycles", type=int, default=5000)
+    bench.add_argument("--transport", choices=("socketpair", "virtual", "both"), default="both")
     bench.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
 
@@ -55,15 +56,20 @@ def main(argv: list[str] | None = None) -> int:
     from .bench import bench_codec, bench_cycle
 
     limit_blas_threads(1)
-    result = {"codec": bench_codec(), "cycle": bench_cycle(args.cycles)}
+    transports = ("socketpair", "virtual") if args.transport == "both" else (args.transport,)
+    result = {"codec": bench_codec()}
+    for transport in transports:
+        result[f"cycle_{transport}"] = bench_cycle(args.cycles, transport=transport)
     if args.json:
         print(json.dumps(result, indent=2))
-    else:
-        c = result["cycle"]
-        print(f"codec only (encode command + decode 6 feedback): {result['codec']}")
+        return 0
+    print(f"codec only (encode command + decode 6 feedback): {result['codec']}")
+    for transport in transports:
+        c = result[f"cycle_{transport}"]
+        print(f"{transport}:")
         for key in ("master", "emulator", "total"):
-            print(f"{key:<9} {c[key]}")
-        print(f"incomplete cycles: {c['incomplete_cycles']} of {c['cycles']}")
+            print(f"  {key:<9} {c[key]}")
+        print(f"  incomplete cycles: {c['incomplete_cycles']} of {c['cycles']}")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Cost of one bus cycle on the ``virtual`` interface: what the control loop pays for the bus.
+"""Cost of one bus cycle on a python-can bus pair: what the control loop pays for the bus.
 
 One 800 Hz cycle is: encode and send the command frame and the SYNC (master), the six drives
 answer (emulator), then receive and decode the six feedback frames into a snapshot (master).
@@ -26,6 +26,7 @@ from .config import DriveBusConfig
 from .emulator import DriveEmulator, EmulatorConfig
 from .link import DriveLink
 from .protocol import DriveTarget
+from .transport import SocketPairBus, socket_pair
 
 _channels = itertools.count()
 
@@ -55,17 +56,34 @@ def bench_codec(repeats: int = 20000) -> dict[str, Any]:
     return _stats(samples)
 
 
-def bench_cycle(cycles: int = 5000, warmup: int = 200) -> dict[str, Any]:
-    """Per-cycle cost of command + SYNC + six feedback frames through the virtual bus.
+def open_bus_pair(transport: str = "socketpair") -> tuple[can.BusABC, can.BusABC]:
+    """A connected (master, drives) pair of CAN FD buses: ``"socketpair"`` (between processes,
+    :mod:`.transport`) or ``"virtual"`` (python-can's in-process interface)."""
+    if transport == "socketpair":
+        a, b = socket_pair()
+        return SocketPairBus(a, channel="master"), SocketPairBus(
+            b, channel="drives", preserve_timestamps=True
+        )
+    if transport == "virtual":
+        channel = f"drive-bus-{next(_channels)}"
+        fd = can.CanProtocol.CAN_FD
+        return (
+            can.Bus(interface="virtual", channel=channel, protocol=fd),
+            can.Bus(interface="virtual", channel=channel, protocol=fd, preserve_timestamps=True),
+        )
+    raise ValueError(f"transport = {transport!r}: expected 'socketpair' or 'virtual'")
+
+
+def bench_cycle(
+    cycles: int = 5000, warmup: int = 200, transport: str = "socketpair"
+) -> dict[str, Any]:
+    """Per-cycle cost of command + SYNC + six feedback frames through a bus pair.
 
     Returns the median, p99 and max (microseconds) of the master's share, the emulator's share
     and both, plus how many cycles came back incomplete (must be 0).
     """
     cfg = DriveBusConfig()
-    channel = f"drive-bench-{next(_channels)}"
-    fd = can.CanProtocol.CAN_FD
-    master_bus = can.Bus(interface="virtual", channel=channel, protocol=fd)
-    drive_bus = can.Bus(interface="virtual", channel=channel, protocol=fd)
+    master_bus, drive_bus = open_bus_pair(transport)
     try:
         link = DriveLink(master_bus, cfg)
         emu = DriveEmulator(
@@ -101,6 +119,7 @@ def bench_cycle(cycles: int = 5000, warmup: int = 200) -> dict[str, Any]:
         total = [a + b for a, b in zip(master, drives, strict=True)]
         return {
             "cycles": cycles,
+            "transport": transport,
             "master": _stats(master),
             "emulator": _stats(drives),
             "total": _stats(total),

@@ -68,6 +68,19 @@ class FaultCounters(NamedTuple):
     drive_faults: int
 
 
+#: The :class:`FaultInjector` methods another process may call by name (control process,
+#: emulator process, tests).
+FAULT_METHODS = (
+    "set_loss",
+    "set_latency",
+    "inject_drive_fault",
+    "clear_drive_fault",
+    "set_heartbeat_loss",
+    "set_silent",
+    "set_bus_off",
+)
+
+
 class FaultInjector:
     """Mutable fault settings shared by the emulator and an :class:`InjectedBus`.
 

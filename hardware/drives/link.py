@@ -225,6 +225,10 @@ class DriveLink:
                 "fd=True; for the virtual interface protocol=can.CanProtocol.CAN_FD)"
             )
         self._bus = bus
+        # A bus with the raw fast path (:class:`~.transport.SocketPairBus`) skips building a
+        # ``can.Message`` per frame: most of the master's per-frame cost in the tick.
+        self._send_frame = getattr(bus, "send_frame", None)
+        self._read_frames = getattr(bus, "read_frames", None)
         self._cfg = cfg = config or DriveBusConfig()
         self._clock = clock
         self._send_timeout = send_timeout_s
@@ -326,6 +330,29 @@ class DriveLink:
             data=data,
             check=False,
         )
+
+    def _send_data(self, can_id: int, data: bytes) -> bool:
+        if self._send_frame is None:
+            return self._send(self._message(can_id, data))
+        try:
+            self._send_frame(can_id, data, True, self._cfg.bitrate_switch)
+        except can.CanError:
+            return self._send_failed()
+        return self._sent(len(data))
+
+    def _send_failed(self) -> bool:
+        self._c["send_errors"] += 1
+        self._consecutive_send_errors += 1
+        if self._consecutive_send_errors >= self._cfg.send_errors_for_bus_off and not self._bus_off:
+            self._set_bus_off(True)
+        return False
+
+    def _sent(self, nbytes: int) -> bool:
+        self._consecutive_send_errors = 0
+        self._c["bus_time_s"] += self._durations.get(nbytes, 0.0)
+        if self._bus_off:
+            self._set_bus_off(False)
+        return True
 
     def _send(self, msg: can.Message) -> bool:
         try:
@@ -440,12 +467,12 @@ class DriveLink:
                 c["torques_clamped"] += 1
             raw[i] = r
         limits = [max(0, x) for x in self._limit_raw]
-        msg = self._message(p.COMMAND_ID, codec.encode_command_raw(cycle, cws, raw, limits))
+        data = codec.encode_command_raw(cycle, cws, raw, limits)
         self._cycle = cycle
         self._next_cycle = (cycle + 1) & 0xFFFFFFFF
         self._cw_sent = cws
         self._command_pending = True
-        if self._send(msg):
+        if self._send_data(p.COMMAND_ID, data):
             c["commands_sent"] += 1
         return np.array(raw, dtype=np.float64) * p.TORQUE_LSB_NM
 
@@ -469,7 +496,7 @@ class DriveLink:
         self._sync_cycle = self._cycle
         self._sync_counter = self._cycle & 0xFF
         self._sync_time[self._sync_counter] = self._clock()
-        sent = self._send(self._message(p.SYNC_ID, codec.encode_sync(self._sync_counter)))
+        sent = self._send_data(p.SYNC_ID, codec.encode_sync(self._sync_counter))
         if sent:
             self._c["syncs_sent"] += 1
         return sent
@@ -477,7 +504,7 @@ class DriveLink:
     def send_nmt(self, command: p.NmtCommand, drive: int | None = None) -> bool:
         """Send an NMT command to ``drive`` (index) or to all drives."""
         node = 0 if drive is None else self._cfg.first_node_id + drive
-        return self._send(self._message(p.NMT_ID, codec.encode_nmt(command, node)))
+        return self._send_data(p.NMT_ID, codec.encode_nmt(command, node))
 
     def start_nodes(self) -> bool:
         """NMT start for all drives (PRE-OPERATIONAL -> OPERATIONAL)."""
@@ -486,15 +513,18 @@ class DriveLink:
     # ----- receiving ---------------------------------------------------------------------------
     def handle(self, msg: can.Message) -> None:
         """Process one received frame (also usable to decode a recorded log offline)."""
-        if msg.is_error_frame:
+        self._handle(msg.arbitration_id, msg.data, msg.is_error_frame)
+
+    def _handle(self, can_id: int, data: bytes | bytearray, is_error: bool) -> None:
+        if is_error:
             self._c["error_frames"] += 1
-            if msg.arbitration_id & CAN_ERR_BUSOFF:
+            if can_id & CAN_ERR_BUSOFF:
                 self._set_bus_off(True)
-            elif msg.arbitration_id & CAN_ERR_RESTARTED:
+            elif can_id & CAN_ERR_RESTARTED:
                 self._set_bus_off(False)
             return
-        self._c["bus_time_s"] += self._durations.get(len(msg.data), 0.0)
-        entry = self._dispatch.get(msg.arbitration_id)
+        self._c["bus_time_s"] += self._durations.get(len(data), 0.0)
+        entry = self._dispatch.get(can_id)
         if entry is None:
             self._c["unknown_frames"] += 1
             return
@@ -502,7 +532,7 @@ class DriveLink:
         now = self._clock()
         if kind == _FEEDBACK:
             try:
-                pos, vel, tau, sw, sync, cmd = codec.FEEDBACK.unpack_from(msg.data)
+                pos, vel, tau, sw, sync, cmd = codec.FEEDBACK.unpack_from(data)
             except struct.error:  # a short frame is a bus error, not a crash
                 self._c["unknown_frames"] += 1
                 return
@@ -531,12 +561,12 @@ class DriveLink:
                     self._state[i] = state
                     self._event(i, "state", state.name)
         elif kind == _HEARTBEAT:
-            if not msg.data:
+            if not data:
                 self._c["unknown_frames"] += 1
                 return
             self._c["heartbeats"] += 1
             try:
-                state = NmtState(msg.data[0])
+                state = NmtState(data[0])
             except ValueError:
                 self._c["unknown_frames"] += 1
                 return
@@ -546,7 +576,7 @@ class DriveLink:
             self._hb_time[i] = now
         else:
             try:
-                e = codec.decode_emcy(msg.data)
+                e = codec.decode_emcy(data)
             except struct.error:
                 self._c["unknown_frames"] += 1
                 return
@@ -566,6 +596,11 @@ class DriveLink:
         """
         bus = self._bus
         try:
+            if deadline is None and self._read_frames is not None:
+                handle = self._handle
+                for can_id, data, is_error in self._read_frames(_MAX_FRAMES_PER_POLL):
+                    handle(can_id, data, is_error)
+                return self.snapshot()
             for _ in range(_MAX_FRAMES_PER_POLL):
                 msg = bus.recv(0.0)
                 if msg is None:
