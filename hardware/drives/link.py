@@ -47,7 +47,8 @@ Clock = Callable[[], float]
 
 _FEEDBACK, _HEARTBEAT, _EMCY = 1, 2, 3
 _MAX_FRAMES_PER_POLL = 512
-_ENABLE_MASK = 0x8F  # bits that make up the "enable operation" command
+_ENABLE_MASK = 0x8F
+_FAULT_BIT = int(p.Statusword.FAULT)  # bits that make up the "enable operation" command
 
 
 def _readonly(arr: NDArray) -> NDArray:
@@ -146,6 +147,13 @@ class DriveFeedback:
     bus_off: bool
     counters: LinkCounters
     torque_limit_nm: FloatArray = field(repr=False)
+    #: Summaries for the control loop, computed from the link's lists (cheaper than reductions
+    #: over the arrays above): the largest ``age_s``, whether any drive is ``stale``, has lost
+    #: its heartbeat, or has the fault bit set.
+    oldest_age_s: float = math.inf
+    any_stale: bool = True
+    any_heartbeat_lost: bool = False
+    any_fault_bit: bool = False
 
     def bus_load_since(self, earlier: DriveFeedback) -> float:
         """Observed bus load between ``earlier`` and this snapshot (fraction of the time the
@@ -622,7 +630,9 @@ class DriveLink:
         """The current state as an immutable :class:`DriveFeedback` (no frames are read)."""
         now = self._clock()
         n = self._n
-        age = np.array([now - t for t in self._sample_time])
+        age_list = [now - t for t in self._sample_time]
+        oldest = max(age_list)
+        age = np.array(age_list)
         hb_age = np.array([now - t for t in self._hb_time])
         cfg = self._cfg
         hb_ref = np.where(np.isfinite(hb_age), hb_age, now - self._start)
@@ -653,6 +663,10 @@ class DriveLink:
             bus_off=self._bus_off,
             counters=LinkCounters(**self._c),
             torque_limit_nm=_readonly(np.array(self._limit)),
+            oldest_age_s=oldest,
+            any_stale=oldest > cfg.feedback_timeout_s,
+            any_heartbeat_lost=any(self._hb_lost),
+            any_fault_bit=any(sw & _FAULT_BIT for sw in self._sw),
         )
 
     def pop_events(self) -> list[LinkEvent]:
