@@ -15,6 +15,11 @@ returned from ``paintGL`` (the VTK render, timed). Frame-to-screen latency is fr
 event-loop turn (Qt composites the GL widget's frame into the window and flushes it to X).
 Updates per second are counted in 1 s windows of wall time after a short warm-up; the median
 window is reported.
+
+The control process (the demo scene, 800 Hz, six emulated drives in their own process, idle in
+READY: drive bus I/O and the tick run, no torque) is measured twice in the same run for the same
+duration: alone (no GUI), then while the view is updated at full speed. Both report deadline
+misses per 10,000 ticks (:class:`~hapticloud.hardware.control.DeadlineLoop`'s statistics).
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import json
 import math
 import sys
 import time
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
@@ -264,13 +269,39 @@ def measure(duration_s: float) -> dict[str, float | int]:
     }
 
 
-def _run_app(duration_s: float) -> dict[str, float | int]:
+def _control(duration_s: float, during: Any = None) -> dict[str, Any]:
+    """Run the demo's control process for ``duration_s`` (or while ``during()`` runs)."""
+    from hapticloud.hardware.control import ControlProcess
+
+    cp = ControlProcess("demo", emulator="process")
+    cp.start()
+    try:
+        out = during() if during is not None else time.sleep(duration_s)
+    finally:
+        result = cp.stop() or {}
+    stats = result.get("deadline", {})
+    return {
+        "ticks": int(result.get("ticks", 0)),
+        "misses": int(stats.get("misses", 0)),
+        "misses_per_10k": round(float(stats.get("misses_per_10k", math.nan)), 2),
+        "work_us_p99": round(float(stats.get("work_us_p99", math.nan)), 1),
+        "sched_fifo": bool(stats.get("sched_fifo", False)),
+        "during": out,
+    }
+
+
+def _run_app(duration_s: float, control: bool = True) -> dict[str, Any]:
     from PyQt6 import QtWidgets, sip
 
     created = QtWidgets.QApplication.instance() is None
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     try:
-        return measure(duration_s)
+        if not control:
+            return measure(duration_s)
+        run = _control(duration_s, lambda: measure(duration_s))
+        result = dict(run.pop("during"))
+        result.update({f"control_gui_{k}": v for k, v in run.items()})
+        return result
     finally:
         if created:
             # Destroy Qt's objects while the display still exists (a virtual one stops next).
@@ -285,8 +316,11 @@ def main(duration_s: float, as_json: bool, out: TextIO) -> int:
     display: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
     if not has_display():
         display = virtual_display()
+    alone = _control(duration_s)
+    alone.pop("during")
     with display:
         result = _run_app(duration_s)
+    result.update({f"control_alone_{k}": v for k, v in alone.items()})
     if as_json:
         print(json.dumps(result), file=out)
     else:
@@ -303,7 +337,15 @@ def main(duration_s: float, as_json: bool, out: TextIO) -> int:
             f"  frame-to-flush: {result['frame_to_flush_ms_median']} ms median, "
             f"{result['frame_to_flush_ms_p90']} ms p90 (to the end of the event-loop turn that "
             "painted: Qt's compositing of the GL widget and the flush to X included)\n"
-            f"  actors added during updates: {result['actors_added']}",
+            f"  actors added during updates: {result['actors_added']}\n"
+            f"control process (demo, 800 Hz, 6 emulated drives in their own process), "
+            f"{duration_s:g} s each:\n"
+            f"  no GUI:        {result['control_alone_misses_per_10k']} misses per 10k ticks "
+            f"({result['control_alone_misses']} of {result['control_alone_ticks']}), "
+            f"work p99 {result['control_alone_work_us_p99']} us\n"
+            f"  with the GUI:  {result['control_gui_misses_per_10k']} misses per 10k ticks "
+            f"({result['control_gui_misses']} of {result['control_gui_ticks']}), "
+            f"work p99 {result['control_gui_work_us_p99']} us",
             file=out,
         )
     return 0 if result["actors_added"] == 0 else 1

@@ -9,6 +9,11 @@ Three stacked plots on one time axis (seconds before the newest frame, so the ax
   true closest point;
 * **perception latency (ms)**: time per stage A-E and the total, per frame of any camera.
 
+A second tab, **control loop**, plots the session's control snapshots (100 Hz, kept by
+:class:`~hapticloud.app.session.Session`): tick time (µs, newest and longest per snapshot, the
+1250 µs period dashed, a red dot where misses rose), approach velocity (m/s), constraint force
+magnitude (N) and the loop's d_proj (mm).
+
 Curves are created once and fed new arrays (``setData``), never re-added; they show only the
 history window, so their cost does not grow while the source runs.
 """
@@ -23,6 +28,7 @@ from PyQt6 import QtCore, QtWidgets
 
 from .live_source import SceneGeometry, Snapshot
 from .scene_view import CAMERA_COLOURS, FUSED_COLOUR, TRUTH_COLOUR
+from .session import CONTROL_COLUMNS
 
 STAGE_PENS = ("#8dd3c7", "#bebada", "#fb8072", "#80b1d3", "#fdb462")
 WINDOW_S = 8.0  # shown of the HISTORY_S carried
@@ -39,10 +45,16 @@ class LivePlots(QtWidgets.QWidget):
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
         pg.setConfigOptions(antialias=False, foreground="#333333", background="w")
-        self.canvas = pg.GraphicsLayoutWidget(self)
+        self.tabs = QtWidgets.QTabWidget(self)
+        self.tabs.setTabPosition(QtWidgets.QTabWidget.TabPosition.West)
+        self.tabs.setDocumentMode(True)
+        self.canvas = pg.GraphicsLayoutWidget(self.tabs)
+        self.control_canvas = pg.GraphicsLayoutWidget(self.tabs)
+        self.tabs.addTab(self.canvas, "perception")
+        self.tabs.addTab(self.control_canvas, "control")
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
-        layout.addWidget(self.canvas)
+        layout.addWidget(self.tabs)
         self.setMinimumHeight(180)
         self.plots: dict[str, pg.PlotItem] = {}
         for row, (key, title) in enumerate(
@@ -50,9 +62,14 @@ class LivePlots(QtWidgets.QWidget):
                 ("d_proj", "d_proj (mm)"),
                 ("error", "error vs truth (mm)"),
                 ("latency", "perception latency (ms)"),
+                ("tick", "control tick (µs)"),
+                ("approach", "approach (m/s)"),
+                ("force", "constraint force (N)"),
+                ("loop_d_proj", "loop d_proj (mm)"),
             )
         ):
-            plot = self.canvas.addPlot(row=0, col=row)
+            canvas = self.canvas if row < 3 else self.control_canvas
+            plot = canvas.addPlot(row=0, col=row if row < 3 else row - 3)
             plot.setLabel("left", title)
             plot.setLabel("bottom", "time before now (s)")
             plot.showGrid(x=True, y=True, alpha=0.25)
@@ -64,13 +81,50 @@ class LivePlots(QtWidgets.QWidget):
             plot.hideButtons()
             self.plots[key] = plot
         self._curves: dict[str, pg.PlotDataItem] = {}
+        self._control: dict[str, pg.PlotDataItem] = {}
+        self._build_control()
         self._camera_names: tuple[str, ...] = ()
         self._shown_seq = -1
         self.updates = 0
+        self.control_updates = 0
+
+    def _build_control(self) -> None:
+        """The control tab's curves, once (they do not depend on the scene)."""
+        legend = {"offset": (2, 2), "labelTextSize": "7pt", "brush": (255, 255, 255, 170)}
+        tick = self.plots["tick"]
+        tick.addLegend(colCount=4, **legend)
+
+        def add(key: str, plot: str, **kwargs: object) -> None:
+            curve = self.plots[plot].plot([], [], **kwargs)
+            curve.setClipToView(True)
+            self._control[key] = curve
+
+        add(
+            "period",
+            "tick",
+            pen=pg.mkPen("#b00020", width=1, style=QtCore.Qt.PenStyle.DashLine),
+            name="period",
+        )
+        add("tick_us_max", "tick", pen=pg.mkPen("#fdb462", width=1), name="max")
+        add("tick_us", "tick", pen=pg.mkPen("#1f78b4", width=1.5), name="tick")
+        add(
+            "misses",
+            "tick",
+            pen=None,
+            symbol="o",
+            symbolSize=6,
+            symbolPen=None,
+            symbolBrush="#b00020",
+            name="miss",
+        )
+        add("approach_mps", "approach", pen=pg.mkPen("#6a3d9a", width=1.5))
+        add("force_n", "force", pen=pg.mkPen("#d95f02", width=1.5))
+        add("d_proj_mm", "loop_d_proj", pen=pg.mkPen(FUSED_COLOUR, width=1.5))
 
     def set_geometry(self, geometry: SceneGeometry) -> None:
         """Create the curves for the cameras of ``geometry`` (once per source)."""
-        for plot in self.plots.values():
+        for key in ("d_proj", "error", "latency"):
+            plot = self.plots[key]
             plot.clear()
             if plot.legend is not None:
                 plot.legend.scene().removeItem(plot.legend)
@@ -115,6 +169,28 @@ class LivePlots(QtWidgets.QWidget):
         curve.setClipToView(True)
         curve.setDownsampling(auto=True, method="peak")
         self._curves[key] = curve
+
+    def show_control(self, history: NDArray) -> None:
+        """Feed the control tab from a session's history (:data:`CONTROL_COLUMNS` rows)."""
+        if not len(history):
+            return
+        col = {name: history[:, i] for i, name in enumerate(CONTROL_COLUMNS)}
+        x = col["t"] - col["t"][-1]
+        recent = x >= -WINDOW_S
+        self._control["period"].setData([-WINDOW_S, 0.0], [1250.0, 1250.0])
+        for key in ("tick_us", "tick_us_max", "approach_mps", "force_n", "d_proj_mm"):
+            self._control[key].setData(x, col[key], connect="finite")
+        rose = np.flatnonzero(np.diff(col["misses"]) > 0) + 1
+        self._control["misses"].setData(x[rose], col["tick_us_max"][rose])
+        for plot, keys in (
+            ("tick", ("tick_us", "tick_us_max")),
+            ("approach", ("approach_mps",)),
+            ("force", ("force_n",)),
+            ("loop_d_proj", ("d_proj_mm",)),
+        ):
+            parts = [col[k][recent & np.isfinite(col[k])] for k in keys]
+            self._fit_y(plot, parts)
+        self.control_updates += 1
 
     def curve_count(self) -> int:
         """Curves in the plots (the frame-update test checks this never grows)."""
@@ -169,7 +245,7 @@ class LivePlots(QtWidgets.QWidget):
         if not len(values):
             return
         lo, hi = float(values.min()), float(values.max())
-        if key != "d_proj":
+        if key not in ("d_proj", "loop_d_proj", "approach"):
             lo = min(lo, 0.0)  # errors and latencies: keep zero in view
         (cur_lo, cur_hi) = self.plots[key].viewRange()[1]
         inside = cur_lo <= lo and hi <= cur_hi

@@ -50,6 +50,7 @@ from hapticloud.core.errors import ConfigError
 from hapticloud.core.fusion import FusedSurface, FusionConfig, SurfaceFusion
 from hapticloud.core.geometry.primitives import Box, Capsule, Primitive, Sphere
 from hapticloud.core.haptics import d_proj
+from hapticloud.core.loop import HapticsConfig
 from hapticloud.core.perception import STAGES, CameraPipeline, PerceptionConfig, SurfaceEstimate
 from hapticloud.core.sim import GroundTruth, SimScene, demo_scene, end_effector
 from hapticloud.core.studies.demo import CAMERA_RATE_HZ, DEMO_HANDLE_DIRECTION, hip_at
@@ -95,11 +96,14 @@ class LiveConfig(StageConfig):
     """Every parameter the live view tunes, under one root so that a preset holds all tables.
 
     ``perception`` applies to every camera's pipeline; ``fusion`` to the shared fusion (a fusion
-    change restarts the fusion's window: :class:`SurfaceFusion` has no in-place reconfiguration).
+    change restarts the fusion's window: :class:`SurfaceFusion` has no in-place reconfiguration)
+    and to the control process's fusion; ``haptics`` to the control process's haptic tick (the
+    worker ignores it).
     """
 
     perception: PerceptionConfig = nested(PerceptionConfig)
     fusion: FusionConfig = nested(FusionConfig)
+    haptics: HapticsConfig = nested(HapticsConfig)
 
 
 class SourceState(enum.Enum):
@@ -312,6 +316,60 @@ def scene_geometry(settings: SimSettings, scene: SimScene | None = None) -> Scen
 
 
 @dataclass(frozen=True)
+class SessionAttach:
+    """What the worker needs to feed a running control process (picklable at spawn).
+
+    ``estimates`` is :attr:`ControlProcess.estimate_connection` (the write end of its estimates
+    pipe); ``state_block`` the name of its :class:`RobotStateBlock` (the robot's HIP and q, every
+    tick). With a session, the worker takes the HIP from the block instead of the scripted path
+    and sends every estimate to the loop, its time mapped onto ``time.monotonic()``.
+    """
+
+    estimates: Any
+    state_block: str
+
+
+class _SessionFeed:
+    """The worker's end of a session: HIP in (shared memory), estimates out (pipe, never
+    blocking: an estimate the pipe cannot take now is dropped and counted)."""
+
+    def __init__(self, attach: SessionAttach) -> None:
+        from hapticloud.hardware.control.shared_state import RobotStateBlock
+
+        self._conn = attach.estimates
+        self._block = RobotStateBlock.attach(attach.state_block)
+        self.dropped = 0
+        self.alive = True
+
+    def hip(self) -> FloatArray | None:
+        if not self.alive:
+            return None
+        state = self._block.read()
+        if state is None or not np.isfinite(state.hip_m).all():
+            return None
+        return np.asarray(state.hip_m, dtype=np.float64)
+
+    def send(self, est: SurfaceEstimate, captured: float) -> None:
+        if not self.alive:
+            return
+        import select
+
+        from hapticloud.hardware.control.process import send_estimate
+
+        try:
+            if not select.select((), (self._conn.fileno(),), (), 0.0)[1]:
+                self.dropped += 1
+                return
+            # The loop's clock is time.monotonic(); the estimate's t is simulation time.
+            send_estimate(self._conn, dataclasses.replace(est, t=captured))
+        except (OSError, ValueError):
+            self.alive = False  # the control process is gone: perception goes on alone
+
+    def close(self) -> None:
+        self._block.close()
+
+
+@dataclass(frozen=True)
 class _Packet:
     """One camera frame, worker -> receiver. Estimates travel as field dicts (their stage_ms
     mapping proxy does not pickle) and are rebuilt, frozen, on the receiving side."""
@@ -364,14 +422,22 @@ def run_worker(
     conn: Any,
     requests: Any,
     stop: Any,
+    session: SessionAttach | None = None,
 ) -> None:
     """Run the simulated data path until ``stop`` is set; one :class:`_Packet` per frame.
 
     ``conn`` is the sending end of a pipe, ``requests`` a queue of ``(version, LiveConfig)``,
     ``stop`` an event. Runs in a worker process (or thread); everything it builds is its own.
+    With ``session`` the HIP comes from the control process and every estimate goes to it.
     """
+    feed = None
+    if session is not None:
+        try:
+            feed = _SessionFeed(session)
+        except (OSError, ValueError):
+            feed = None  # the session is already gone: perception alone
     try:
-        _worker_loop(settings, config, conn, requests, stop)
+        _worker_loop(settings, config, conn, requests, stop, feed)
     except (BrokenPipeError, EOFError, OSError):
         return  # the receiver is gone: nobody to tell
     except Exception as err:  # report, do not die silently
@@ -381,6 +447,9 @@ def run_worker(
         except OSError:
             pass
         return
+    finally:
+        if feed is not None:
+            feed.close()
     try:
         conn.send(_End(SourceState.STOPPED, "stopped"))
     except OSError:
@@ -388,7 +457,12 @@ def run_worker(
 
 
 def _worker_loop(
-    settings: SimSettings, config: LiveConfig, conn: Any, requests: Any, stop: Any
+    settings: SimSettings,
+    config: LiveConfig,
+    conn: Any,
+    requests: Any,
+    stop: Any,
+    feed: _SessionFeed | None = None,
 ) -> None:
     from hapticloud.core.threads import limit_blas_threads
 
@@ -420,9 +494,18 @@ def _worker_loop(
             newest = None
             while True:  # drain: the newest request wins
                 try:
-                    newest = requests.get_nowait()
+                    item = requests.get_nowait()
                 except queue.Empty:
                     break
+                if isinstance(item, SessionAttach):  # a session that came up after the start
+                    if feed is not None:
+                        feed.close()
+                    try:
+                        feed = _SessionFeed(item)
+                    except (OSError, ValueError):
+                        feed = None
+                else:
+                    newest = item
             if newest is not None:
                 version, requested = newest
                 if requested.perception != config.perception:
@@ -434,7 +517,8 @@ def _worker_loop(
                 config = requested
 
             captured = time.monotonic()
-            hip = np.asarray(hip_path(t), dtype=np.float64)
+            live_hip = feed.hip() if feed is not None else None
+            hip = np.asarray(hip_path(t), dtype=np.float64) if live_hip is None else live_hip
             robot = robot_at(settings, hip)
             t0 = time.perf_counter()
             depth = cam.render(world, t, occluders=robot)
@@ -449,8 +533,11 @@ def _worker_loop(
             fused: FusedSurface | None = None
             fused_dp = math.nan
             while next_tick < t:
-                fused, fused_dp = _tick(fusion, next_tick, hip_path(next_tick), r_hip, rows)
+                tick_hip = hip if live_hip is not None else hip_path(next_tick)
+                fused, fused_dp = _tick(fusion, next_tick, tick_hip, r_hip, rows)
                 next_tick += tick_dt
+            if feed is not None:
+                feed.send(est, captured)
             fusion.add(est)
             fused, fused_dp = _tick(fusion, t, hip, r_hip, rows)
             next_tick = max(next_tick, t + tick_dt)
@@ -584,6 +671,9 @@ class LiveSource:
     in_process
         Run the worker on a thread of this process instead of its own process (debugging; the GUI
         slows it down, see the module docstring).
+    session
+        A running control process to feed (:class:`SessionAttach`): the HIP then comes from the
+        robot's shared state and every estimate goes to the loop's fusion.
 
     Example
     -------
@@ -599,8 +689,10 @@ class LiveSource:
         config: LiveConfig | None = None,
         *,
         in_process: bool = False,
+        session: SessionAttach | None = None,
     ) -> None:
         self.settings = SimSettings() if settings is None else settings
+        self.session = session
         self._config = LiveConfig() if config is None else config
         if not isinstance(self._config, LiveConfig):
             raise ConfigError(f"config: expected a LiveConfig, got {type(config).__name__}")
@@ -641,7 +733,7 @@ class LiveSource:
         if self._worker is not None:
             raise RuntimeError("LiveSource.start: already started")
         recv_end, send_end = self._ctx.Pipe(duplex=False)
-        args = (self.settings, self._config, send_end, self._requests, self._stop)
+        args = (self.settings, self._config, send_end, self._requests, self._stop, self.session)
         if self._in_process:
             self._worker = threading.Thread(
                 target=run_worker, args=args, name="hapticloud-sim-worker", daemon=True
@@ -657,6 +749,11 @@ class LiveSource:
             target=self._receive, args=(recv_end,), name="hapticloud-snapshots", daemon=True
         )
         self._receiver.start()
+
+    def attach_session(self, session: SessionAttach) -> None:
+        """Feed a control process that came up after :meth:`start` (from the next frame on)."""
+        self.session = session
+        self._requests.put(session)
 
     def latest(self) -> Snapshot | None:
         """The newest snapshot (``None`` before the first frame); never blocks."""

@@ -24,6 +24,8 @@ from .live_plots import LivePlots
 from .live_source import LiveConfig, Snapshot, SnapshotSource, SourceState
 from .param_panel import ParamPanel
 from .scene_view import CAMERA_PRESETS, COLOR_MODES, LAYERS, SceneView
+from .session import Session, SessionPhase
+from .session_panel import STATE_STYLE, SessionPanel
 from .status import StatusPanel
 
 #: How often the window polls the source for a new snapshot (ms): up to ~60 Hz; a paint happens
@@ -35,7 +37,12 @@ POLL_MS = 15
 PLOT_PERIOD_S = 0.1
 ESTOP_KEYS = (QtCore.Qt.Key.Key_Escape, QtCore.Qt.Key.Key_Space)
 
-SourceFactory = Callable[[LiveConfig], SnapshotSource]
+#: Builds a source for a configuration; with a session, called as ``make(config, session=attach)``
+#: (the :class:`~hapticloud.app.live_source.SessionAttach` or ``None``).
+SourceFactory = Callable[..., SnapshotSource]
+SessionFactory = Callable[[], Session]
+#: Without a new perception frame, the view is still repainted this often (s) for the force arrow.
+CONTROL_PAINT_S = 0.1
 
 
 def _is_text_entry(obj: QtCore.QObject) -> bool:
@@ -159,6 +166,9 @@ class MainWindow(QtWidgets.QMainWindow):
         Initial parameters.
     title
         Shown in the title bar (the scene's name).
+    make_session
+        Builds the control process's :class:`Session` (started once, with the window; the
+        perception worker is spawned attached to it). ``None``: perception only.
     """
 
     def __init__(
@@ -166,6 +176,8 @@ class MainWindow(QtWidgets.QMainWindow):
         make_source: SourceFactory,
         config: LiveConfig | None = None,
         title: str = "demo",
+        *,
+        make_session: SessionFactory | None = None,
     ) -> None:
         super().__init__()
         self.setWindowTitle(f"hapticloud — {title}")
@@ -187,12 +199,22 @@ class MainWindow(QtWidgets.QMainWindow):
         self.panel.config_changed.connect(self._apply_config)
         self.panel.refused.connect(self._show_refusal)
         self.plots = LivePlots(self)
+        self.session_panel = SessionPanel(self)
+        self._dock("Session", self.session_panel, QtCore.Qt.DockWidgetArea.RightDockWidgetArea)
         self._dock("Parameters", self.panel, QtCore.Qt.DockWidgetArea.RightDockWidgetArea)
         self._dock("Live plots", self.plots, QtCore.Qt.DockWidgetArea.BottomDockWidgetArea)
         self.resizeDocks(
             [self.findChild(QtWidgets.QDockWidget, "Parameters")],
             [420],
             QtCore.Qt.Orientation.Horizontal,
+        )
+        self.resizeDocks(
+            [
+                self.findChild(QtWidgets.QDockWidget, "Session"),
+                self.findChild(QtWidgets.QDockWidget, "Parameters"),
+            ],
+            [250, 480],
+            QtCore.Qt.Orientation.Vertical,
         )
         self.resizeDocks(
             [self.findChild(QtWidgets.QDockWidget, "Live plots")],
@@ -216,6 +238,18 @@ class MainWindow(QtWidgets.QMainWindow):
         self._paints: deque[float] = deque(maxlen=61)
         self.view.plotter.installEventFilter(self)
         self.source: SnapshotSource | None = None
+        self._make_session = make_session
+        self.session: Session | None = None
+        self._attached = False
+        self._applied = config
+        self._control_seq = -1
+        self._control_painted = 0.0
+        self._control_plotted = 0.0
+        if make_session is not None:
+            self.session = make_session()
+            self.session.start()  # returns at once; the source waits for it (poll)
+        self.session_panel.set_session(self.session, self.emergency_stop)
+        self._haptics_note()
         self._start_source(config)
         self.timer = QtCore.QTimer(self)
         self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
@@ -265,9 +299,52 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stop_label.setStyleSheet("color:#c0392b; font-weight:700; font-size:14px;")
         bar.addWidget(self.stop_label)
 
+    # ----- the session -------------------------------------------------------------------------
+    def _haptics_note(self) -> None:
+        session = self.session
+        if session is None:
+            note, read_only = "Haptics act on the control process: no session runs.", True
+        elif session.phase is SessionPhase.FAILED:
+            note, read_only = f"No session ({session.message}): haptics not applied.", True
+        elif not session.can_configure:
+            note = (
+                "Read-only: the control process cannot take haptics changes while it runs yet "
+                "(no ControlProcess.configure); it uses the scene's haptics table. Values shown "
+                "are the defaults."
+            )
+            read_only = True
+        else:
+            note, read_only = "Applied to the control loop at its next tick.", False
+        self.panel.set_table_note("haptics", note, read_only=read_only)
+
+    def _poll_session(self) -> None:
+        session = self.session
+        if session is None:
+            return
+        snap = session.poll()
+        state = self.session_panel.state_text()
+        self.session_panel.refresh()
+        self.status.show_session(
+            state, session.latest, STATE_STYLE.get(state, STATE_STYLE["closed"])
+        )
+        if snap is None or snap.seq == self._control_seq:
+            return
+        self._control_seq = snap.seq
+        self.view.show_control(snap)
+        now = time.monotonic()
+        if now - self._control_plotted >= PLOT_PERIOD_S:
+            self._control_plotted = now
+            self.plots.show_control(session.history())
+
     # ----- the source -------------------------------------------------------------------------
     def _start_source(self, config: LiveConfig) -> None:
-        source = self._make_source(config)
+        session = self.session
+        if session is not None:
+            # A session still starting is attached by poll() once it runs.
+            source = self._make_source(config, session=session.attach)
+            self._attached = session.running
+        else:
+            source = self._make_source(config)
         self.view.set_geometry(source.geometry)
         self.plots.set_geometry(source.geometry)
         self.controls.update_legend()
@@ -288,6 +365,8 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def emergency_stop(self, reason: str = "emergency stop") -> None:
         """Stop the source now and show STOPPED (the source confirms with its next snapshot)."""
+        if self.session is not None:
+            self.session.emergency_stop(reason)  # the drives first
         if self.source is not None:
             self.source.emergency_stop(reason)
         self.stop_label.setText(f"STOPPED — {reason}")
@@ -304,6 +383,14 @@ class MainWindow(QtWidgets.QMainWindow):
     def _apply_config(self, config: LiveConfig) -> None:
         if self.source is not None:
             self.source.request_config(config)
+        session, old = self.session, self._applied
+        self._applied = config
+        if session is None or not session.running:
+            return
+        haptics = config.haptics if config.haptics != old.haptics else None
+        fusion = config.fusion if config.fusion != old.fusion else None
+        if (haptics is not None or fusion is not None) and session.can_configure:
+            session.configure(haptics=haptics, fusion=fusion)
 
     def _show_refusal(self, reason: str) -> None:
         self.statusBar().showMessage(f"Refused: {reason}", 8000)
@@ -311,12 +398,28 @@ class MainWindow(QtWidgets.QMainWindow):
     # ----- display ------------------------------------------------------------------------------
     def poll(self) -> None:
         """Show the newest snapshot if it is newer than the one shown (timer slot)."""
-        source = self.source
+        self._poll_session()
+        session, source = self.session, self.source
+        started = session is not None and session.phase is not SessionPhase.STARTING
+        if session is not None and started and not self._attached:
+            self._attached = True
+            self._haptics_note()
+            attach = session.attach
+            if attach is None:
+                self.statusBar().showMessage(f"{session.message}; perception only", 0)
+            elif source is not None and hasattr(source, "attach_session"):
+                source.attach_session(attach)
         if source is None:
             return
         snap = source.latest()
         if snap is None or snap.seq <= self._shown_seq:
-            return  # nothing new: no paint
+            # No new frame (stopped, or between frames): the force arrow still moves.
+            now = time.monotonic()
+            if self.session is not None and now - self._control_painted >= CONTROL_PAINT_S:
+                self._control_painted = now
+                self.view.request_render()
+            return
+        self._control_painted = time.monotonic()
         self._shown_seq = snap.seq
         self.shown = snap
         self.view.show_snapshot(snap)
@@ -366,6 +469,8 @@ class MainWindow(QtWidgets.QMainWindow):
             app.removeEventFilter(self._stop_filter)
         if self.source is not None:
             self.source.close()
+        if self.session is not None:
+            self.session.close()
         self.view.close_view()
 
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:  # noqa: N802

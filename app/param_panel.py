@@ -47,6 +47,11 @@ SECTION_TITLES: Mapping[str, str] = {
     "perception.": "pipeline",
     "fusion": "Fusion / PID",
     "fusion.": "regression",
+    "haptics": "Haptics",
+    "haptics.": "constraints",
+    "haptics.positional": "positional constraint (eqs. 9-11)",
+    "haptics.velocity": "velocity constraint (eqs. 12-14)",
+    "haptics.force": "force constraint (ISO/TS 15066)",
 }
 #: Leaves that open a new section inside a flat table (``FusionConfig`` has no sub-tables).
 SECTION_BREAKS: Mapping[str, str] = {"fusion.feedforward": "PID follower"}
@@ -469,6 +474,8 @@ class ParamPanel(QtWidgets.QWidget):
         self._infos = {info.path: info for info in self._root.params()}
         self._rows: dict[str, _Row] = {}
         self._pending_drag: dict[str, Any] = {}
+        self._tab_columns: dict[str, QtWidgets.QVBoxLayout] = {}
+        self._notes: dict[str, QtWidgets.QLabel] = {}
 
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(4, 4, 4, 4)
@@ -527,6 +534,7 @@ class ParamPanel(QtWidgets.QWidget):
             column.addStretch(1)
             scroll.setWidget(inner)
             self.tabs.addTab(scroll, SECTION_TITLES.get(top, top or "general"))
+            self._tab_columns[top] = column
 
     def _section_title(self, top: str, key: str) -> str:
         if ":" in key:
@@ -584,6 +592,27 @@ class ParamPanel(QtWidgets.QWidget):
         else:
             box.expand(animate=False)
         return box
+
+    def set_table_note(self, top: str, note: str, *, read_only: bool) -> None:
+        """Show ``note`` at the top of table ``top``'s tab; ``read_only`` disables its editors
+        (values shown, not changeable: e.g. nobody can apply them while the app runs)."""
+        column = self._tab_columns[top]
+        label = self._notes.get(top)
+        if label is None:
+            label = QtWidgets.QLabel(column.parentWidget())
+            label.setWordWrap(True)
+            label.setStyleSheet("color:#7a5b00; background:#fff3cd; padding:3px;")
+            column.insertWidget(0, label)
+            self._notes[top] = label
+        label.setText(note)
+        label.setVisible(bool(note))
+        for path, row in self._rows.items():
+            if path.startswith(f"{top}."):
+                row.editor.setEnabled(not read_only)
+
+    def table_read_only(self, top: str) -> bool:
+        rows = [r for p, r in self._rows.items() if p.startswith(f"{top}.")]
+        return bool(rows) and not any(r.editor.isEnabled() for r in rows)
 
     # ----- values -----------------------------------------------------------------------------
     @property

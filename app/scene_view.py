@@ -49,6 +49,13 @@ ROBOT_COLOUR = "#8a9bb0"
 BODY_COLOUR = "#e2d6ca"
 BODY_INSET_M = 0.003
 SHELL_COLOUR = "#5aa9e6"
+FORCE_COLOUR = "#d95f02"
+#: Length of the constraint force arrow per newton (m/N): 20 N draws 100 mm.
+FORCE_SCALE_M_PER_N = 0.005
+#: Forces below this (N) hide the arrow; longer than FORCE_MAX_M it is capped (its length then
+#: says "at least").
+FORCE_MIN_N = 0.05
+FORCE_MAX_M = 0.25
 REJECTED_GREY = (150, 150, 150)
 BACKGROUND = ("#fdfdfd", "#dfe6ee")
 
@@ -73,6 +80,7 @@ LAYERS = (
     Layer("shells", "shells"),
     Layer("estimates", "camera estimates"),
     Layer("fused", "fused estimate"),
+    Layer("force", "constraint force (session)"),
 )
 
 #: Camera presets: key -> label. "follow" keeps the HIP centred as it moves.
@@ -225,6 +233,7 @@ class SceneView(QtWidgets.QWidget):
         self._capsule, self._capsule_upper = _capsule_template()
         self._capsule_normals = np.array(self._capsule.point_data["Normals"])
         self.frames_shown = 0
+        self.force_n = 0.0
 
     # ----- building (once per source) ----------------------------------------------------------
     def _add(
@@ -393,6 +402,12 @@ class SceneView(QtWidgets.QWidget):
             color=TRUTH_COLOUR,
         )
         self._add("gap", pv.Line((0, 0, 0), (1, 0, 0)), "fused", color=FUSED_COLOUR, line_width=2)
+        self._add(
+            "force",
+            pv.Arrow(tip_length=0.25, tip_radius=0.07, shaft_radius=0.025),
+            "force",
+            color=FORCE_COLOUR,
+        )
         self._banner = self.plotter.add_text(
             "STOPPED",
             position=(0.5, 0.96),
@@ -489,6 +504,8 @@ class SceneView(QtWidgets.QWidget):
             (TRUTH_COLOUR, "truth"),
             (HIP_COLOUR, "HIP"),
         ]
+        if self._layer_on["force"]:
+            items.append((FORCE_COLOUR, f"force ({1e3 * FORCE_SCALE_M_PER_N:g} mm/N)"))
         return items
 
     def set_camera_preset(self, preset: str, *, render: bool = True) -> None:
@@ -566,6 +583,24 @@ class SceneView(QtWidgets.QWidget):
             self._place_camera(self._last_hip, offset, cam.GetViewAngle())
         self.frames_shown += 1
         self.request_render()
+
+    def show_control(self, snap: object | None, *, render: bool = False) -> None:
+        """The constraint force at the HIP from a control snapshot (``force_n``, ``hip_m``): an
+        arrow of :data:`FORCE_SCALE_M_PER_N`, hidden below :data:`FORCE_MIN_N` or without a
+        snapshot. Moves the one arrow actor; a paint only if ``render``."""
+        if self._geometry is None:
+            return
+        force = np.asarray(getattr(snap, "force_n", (0.0, 0.0, 0.0)), dtype=np.float64)
+        magnitude = float(np.linalg.norm(force)) if np.isfinite(force).all() else 0.0
+        show = snap is not None and magnitude >= FORCE_MIN_N
+        if show:
+            length = min(FORCE_SCALE_M_PER_N * magnitude, FORCE_MAX_M)
+            hip = np.asarray(snap.hip_m, dtype=np.float64)  # type: ignore[union-attr]
+            self._move("force", _placement(hip, force, length))
+        self.force_n = magnitude if show else 0.0
+        self._visible("force", show, "force")
+        if render:
+            self.request_render()
 
     def show_stopped(self, text: str = "STOPPED") -> None:
         """Show the stop banner at once (the source confirms with its next snapshot)."""

@@ -1,6 +1,7 @@
 """The status bar: the system's health at a glance, every number with its unit.
 
-Fields: source state, each camera's measured rate, simulation speed, perception latency (median
+Fields: source state, session state (the control process), control rate and deadline misses,
+each camera's measured rate, simulation speed, perception latency (median
 and worst of the last second), estimate age, frame-to-screen latency, error against the truth and
 the view's own update rate. Text is refreshed a few times a second (numbers changing at 30 Hz
 cannot be read) from the newest snapshot the window already holds; nothing is computed here
@@ -41,7 +42,18 @@ def _mm(value: float) -> str:
 class StatusPanel:
     """Labels in a :class:`QStatusBar`; :meth:`show` updates them (rate-limited)."""
 
-    FIELDS = ("state", "cameras", "speed", "perception", "age", "latency", "error", "view")
+    FIELDS = (
+        "state",
+        "session",
+        "control",
+        "cameras",
+        "speed",
+        "perception",
+        "age",
+        "latency",
+        "error",
+        "view",
+    )
 
     def __init__(self, bar: QtWidgets.QStatusBar) -> None:
         self.bar = bar
@@ -68,9 +80,26 @@ class StatusPanel:
             "latency": "frame-to-screen: from the camera frame's capture to this display",
             "error": "distance from the fused centroid to the true closest point (simulation)",
             "view": "3D view updates per second",
+            "session": "state of the control process's session (drives)",
+            "control": "control loop rate / deadline misses since it started",
         }
         for key, tip in tips.items():
             self.labels[key].setToolTip(tip)
+
+    def show_session(self, state: str, snap: object | None, style: str) -> None:
+        """The session's state (coloured like the session panel), control rate and misses."""
+        label = self.labels["session"]
+        text = f" {state.upper().replace('_', ' ')} "
+        if label.text() != text:
+            label.setText(text)
+            label.setStyleSheet(style)
+        if snap is None:
+            self.labels["control"].setText(f"control {NO_VALUE}")
+            return
+        rate = getattr(snap, "control_rate_hz", math.nan)
+        misses = getattr(snap, "misses", 0)
+        rate_text = f"{rate:.0f} Hz" if math.isfinite(rate) else NO_VALUE
+        self.labels["control"].setText(f"control {rate_text}, {misses} misses")
 
     def set_state(self, state: SourceState, message: str) -> None:
         label = self.labels["state"]

@@ -23,6 +23,10 @@ KEYS = (
     "frame_to_screen_ms_median",
     "frame_to_screen_ms_p90",
     "actors_added",
+    "control_alone_misses_per_10k",
+    "control_gui_misses_per_10k",
+    "control_alone_ticks",
+    "control_gui_ticks",
 )
 
 
@@ -49,6 +53,7 @@ def test_bench_gui_json_without_a_display() -> None:
         assert key in result, key
         assert isinstance(result[key], int | float), (key, result[key])
     assert result["actors_added"] == 0
+    assert result["control_alone_ticks"] > 0 and result["control_gui_ticks"] > 0
     assert result["updates_per_s"] > 0
     assert result["update_ms_median"] > 0 and result["render_ms_median"] > 0
     assert result["frame_to_screen_ms_p90"] >= result["frame_to_screen_ms_median"] > 0

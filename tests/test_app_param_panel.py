@@ -47,7 +47,7 @@ def test_every_parameter_has_a_widget_of_its_kind(panel: ParamPanel) -> None:
         assert info.doc in editor.toolTip()
     # Both tables are there, as tabs.
     tabs = [panel.tabs.tabText(i) for i in range(panel.tabs.count())]
-    assert tabs == ["Perception", "Fusion / PID"]
+    assert tabs == ["Perception", "Fusion / PID", "Haptics"]
 
 
 def test_widgets_show_the_defaults(panel: ParamPanel) -> None:

@@ -81,6 +81,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--speed", type=positive_float, default=1.0, help="simulation time per wall time (1)"
     )
+    parser.add_argument(
+        "--no-session",
+        action="store_true",
+        help="perception only: do not start the 800 Hz control process with its emulated drives",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -129,14 +134,17 @@ def _run_window(
     from hapticloud.app.live_source import LiveSource
     from hapticloud.app.main_window import MainWindow
     from hapticloud.app.screenshot import save_window
+    from hapticloud.app.session import Session
     from PyQt6 import QtCore, QtWidgets
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("hapticloud")
+    scene = settings.scene  # type: ignore[attr-defined]
     window = MainWindow(
-        lambda cfg: LiveSource(settings, cfg),  # type: ignore[arg-type]
+        lambda cfg, session=None: LiveSource(settings, cfg, session=session),  # type: ignore[arg-type]
         config,  # type: ignore[arg-type]
-        title=settings.scene,  # type: ignore[attr-defined]
+        title=scene,
+        make_session=None if args.no_session else (lambda: Session(scene)),
     )
     window.controls.color_mode.setCurrentText(args.color_by)
     window.controls.preset_actions[args.view].trigger()

@@ -357,7 +357,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             )
         )
         held = None  # the last valid fused surface, still (velocity zero)
-        est_time = -math.inf  # capture time of the newest admitted estimate
+        est_time = -math.inf  # capture time of the newest estimate received
         fed_estimates = False
         camera_last: dict[str, float] = {}
         fault_reset_ticks = 0
@@ -437,8 +437,11 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 spec = camera_specs.get(est.camera)
                 min_q = spec.min_quality if spec is not None else 0.0
                 fallbacks = spec.fuse_fallbacks if spec is not None else False
+                # Any estimate is fresh news from perception, an invalid one too ("nothing within
+                # the workspace sphere" is the normal case away from the patient): the estimate
+                # watchdog watches perception's output, the fusion judges its validity.
+                est_time = max(est_time, est.t)
                 if fusion is not None and admit(est, min_q, fallbacks) and fusion.add(est):
-                    est_time = max(est_time, est.t)
                     added = True
             return added
 

@@ -1,0 +1,317 @@
+"""The supervised hardware session, GUI side: the control process's handle and its telemetry.
+
+The app runs the 800 Hz control process (:class:`~hapticloud.hardware.control.ControlProcess`,
+six emulated drives in their own process) beside the perception worker. This module owns the
+handle in the GUI process; no Qt here.
+
+* :meth:`Session.start` starts the control process on a helper thread (it takes ~1.5 s to come
+  up) and returns at once; :attr:`Session.phase` goes STARTING -> RUNNING, or FAILED with the
+  reason in :attr:`Session.message` (the app then runs perception alone).
+* Once running, :attr:`Session.attach` is what the perception worker needs at spawn (the
+  estimates pipe and the robot state block's name).
+* :meth:`Session.poll` is called by the window's timer: it drains the snapshots the control
+  process sent since the last call (``cp.snapshots()``: a non-blocking pipe read, ~100 per
+  second), keeps a history ring for the plots and the alarms (session transitions and watchdog
+  reactions, with their time), and returns the newest. Nothing at 800 Hz reaches the GUI: the
+  loop publishes every 8th tick.
+* Commands (:meth:`enable`, :meth:`disable`, :meth:`reset`, :meth:`emergency_stop`,
+  :meth:`configure`) are one small pipe write each; the loop reads them at its next tick.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .live_source import HISTORY_S, SessionAttach, _Ring
+
+#: History columns, one row per control snapshot (100 Hz).
+CONTROL_COLUMNS = (
+    "t",
+    "tick_us",
+    "tick_us_max",
+    "misses",
+    "approach_mps",
+    "force_n",
+    "d_proj_mm",
+    "state",
+)
+#: Snapshots per second the control process publishes (800 Hz / 8).
+SNAPSHOT_RATE_HZ = 100.0
+#: Alarms kept (newest first in the panel).
+MAX_ALARMS = 200
+#: The scene files of the app's built-in scenes, for the control process.
+CONTROL_SCENES = {"demo": "demo"}
+STATE_INDEX = {
+    s: i
+    for i, s in enumerate(
+        ("disconnected", "connected", "ready", "enabled", "fault", "emergency_stop")
+    )
+}
+
+
+class SessionPhase(enum.Enum):
+    """Life cycle of the control process as the app sees it."""
+
+    STARTING = "starting"
+    RUNNING = "running"
+    FAILED = "failed"
+    CLOSED = "closed"
+
+
+@dataclass(frozen=True, slots=True)
+class Alarm:
+    """One line of the alarms list: ``t`` is time.monotonic (s), ``kind`` ``"state"``,
+    ``"reaction"`` or ``"app"``."""
+
+    t: float
+    kind: str
+    text: str
+
+    def clock(self) -> str:
+        """Wall-clock time of day, ms."""
+        wall = self.t + (time.time() - time.monotonic())
+        return time.strftime("%H:%M:%S", time.localtime(wall)) + f".{int(1e3 * (wall % 1)):03d}"
+
+
+def default_dynamics(scene: str) -> Any:
+    """The emulated arm pushed by the scene's simulated patient, when the hardware layer has it
+    (:class:`hapticloud.hardware.drives.scene_arm.SceneArmFactory`); ``None``: a rigid arm."""
+    try:
+        from hapticloud.hardware.drives.scene_arm import SceneArmFactory  # type: ignore
+    except ImportError:
+        return None
+    try:
+        return SceneArmFactory(scene)
+    except Exception:  # a factory that refuses the scene: the rigid arm
+        return None
+
+
+class Session:
+    """The control process of a scene, run and watched from the GUI process.
+
+    Parameters
+    ----------
+    scene
+        The app's scene name (``"demo"``) or a scene file for the control process.
+    dynamics
+        The emulated arm's dynamics factory; ``"auto"``: :func:`default_dynamics`.
+    emulator
+        Where the six emulated drives run (``"process"``: their own process).
+    process_kwargs
+        More :class:`ControlProcess` arguments (tests).
+    """
+
+    def __init__(
+        self,
+        scene: str = "demo",
+        *,
+        dynamics: Any = "auto",
+        emulator: str = "process",
+        **process_kwargs: Any,
+    ) -> None:
+        self.scene = CONTROL_SCENES.get(scene, scene)
+        self._dynamics = default_dynamics(self.scene) if dynamics == "auto" else dynamics
+        self._emulator = emulator
+        self._kwargs = process_kwargs
+        self._cp: Any = None
+        self._phase = SessionPhase.STARTING
+        self._message = ""
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._closing = False
+        self._pending_estop: str | None = None
+        self.info: dict[str, Any] | None = None
+        self.latest: Any = None
+        self.alarms: deque[Alarm] = deque(maxlen=MAX_ALARMS)
+        self.received = 0
+        self.lost = 0  # gaps in the snapshots' seq (sent but not seen: none expected)
+        self.result: dict[str, Any] | None = None
+        self._ring = _Ring(int(HISTORY_S * SNAPSHOT_RATE_HZ) + 1, len(CONTROL_COLUMNS))
+
+    # ----- life cycle ---------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the control process on a helper thread; returns at once."""
+        if self._thread is not None:
+            raise RuntimeError("Session.start: already started")
+        self._thread = threading.Thread(target=self._start, name="hapticloud-session", daemon=True)
+        self._thread.start()
+
+    def start_blocking(self, timeout_s: float = 60.0) -> SessionPhase:
+        """Start and wait until running or failed (the bench and tests)."""
+        self.start()
+        assert self._thread is not None
+        self._thread.join(timeout_s)
+        return self._phase
+
+    def _start(self) -> None:
+        try:
+            from hapticloud.hardware.control import ControlProcess
+
+            cp = ControlProcess(
+                self.scene, emulator=self._emulator, dynamics=self._dynamics, **self._kwargs
+            )
+            info = cp.start()
+        except Exception as err:  # shown in the panel; perception goes on alone
+            text = str(err).strip().splitlines()
+            self._message = f"session could not start: {text[-1] if text else type(err).__name__}"
+            self._phase = SessionPhase.FAILED
+            self.alarms.appendleft(Alarm(time.monotonic(), "app", self._message))
+            return
+        with self._lock:
+            self._cp, self.info = cp, info
+            if self._closing:
+                return  # close() stops it
+            self._phase = SessionPhase.RUNNING
+            self._message = ""
+            if self._pending_estop is not None:
+                cp.emergency_stop(self._pending_estop)
+        self.alarms.appendleft(
+            Alarm(time.monotonic(), "app", f"control process {cp.pid} started: {_describe(info)}")
+        )
+
+    @property
+    def phase(self) -> SessionPhase:
+        return self._phase
+
+    @property
+    def message(self) -> str:
+        return self._message
+
+    @property
+    def running(self) -> bool:
+        return self._phase is SessionPhase.RUNNING
+
+    @property
+    def process(self) -> Any:
+        """The :class:`ControlProcess` (``None`` until running)."""
+        return self._cp if self.running else None
+
+    @property
+    def attach(self) -> SessionAttach | None:
+        """What the perception worker needs at spawn (``None`` unless running)."""
+        cp = self.process
+        if cp is None:
+            return None
+        try:
+            return SessionAttach(cp.estimate_connection, cp.state_block_name)
+        except RuntimeError:
+            return None
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop the control process (torque off, drives disabled) and join it (idempotent)."""
+        with self._lock:
+            self._closing = True
+            cp, self._cp = self._cp, None
+        if self._thread is not None and self._thread.is_alive():
+            self._thread.join(timeout_s)
+            with self._lock:
+                cp, self._cp = cp or self._cp, None
+        if cp is not None:
+            try:
+                self.result = cp.stop(timeout_s)
+            except Exception:
+                pass
+        if self._phase is not SessionPhase.FAILED:
+            self._phase = SessionPhase.CLOSED
+
+    # ----- telemetry ----------------------------------------------------------------------------
+    def poll(self) -> Any:
+        """Drain the snapshots received since the last call; the newest new one, or ``None``."""
+        cp = self.process
+        if cp is None:
+            return None
+        snaps = cp.snapshots()
+        if not snaps:
+            if not cp.alive and self._phase is SessionPhase.RUNNING:
+                why = cp.error.strip().splitlines()[-1] if cp.error else "it exited"
+                self._message = f"control process ended: {why}"
+                self._phase = SessionPhase.FAILED
+                self.alarms.appendleft(Alarm(time.monotonic(), "app", self._message))
+            return None
+        rows = np.empty((len(snaps), len(CONTROL_COLUMNS)))
+        for k, s in enumerate(snaps):
+            if self.latest is not None and s.seq > self.latest.seq + 1:
+                self.lost += s.seq - self.latest.seq - 1
+            self.latest = s
+            force = math.sqrt(sum(f * f for f in s.force_n))
+            d_mm = 1e3 * s.d_proj_m if math.isfinite(s.d_proj_m) else math.nan
+            rows[k] = (
+                s.t,
+                s.tick_us,
+                s.tick_us_max,
+                s.misses,
+                s.approach_mps,
+                force,
+                d_mm,
+                STATE_INDEX.get(s.state, -1),
+            )
+            for t, kind, text in s.events:
+                self.alarms.appendleft(Alarm(t, kind, text))
+        self.received += len(snaps)
+        self._ring.extend(rows)
+        return self.latest
+
+    def history(self) -> NDArray[np.float64]:
+        """The last :data:`HISTORY_S` s of snapshots, oldest first (:data:`CONTROL_COLUMNS`)."""
+        return self._ring.ordered()
+
+    # ----- commands -----------------------------------------------------------------------------
+    def _command(self, name: str, *args: Any) -> bool:
+        cp = self.process
+        if cp is None:
+            return False
+        try:
+            getattr(cp, name)(*args)
+        except (OSError, RuntimeError, BrokenPipeError):
+            return False
+        return True
+
+    def enable(self) -> bool:
+        return self._command("enable", "enable (app)")
+
+    def disable(self) -> bool:
+        return self._command("disable")
+
+    def reset(self) -> bool:
+        return self._command("reset")
+
+    def emergency_stop(self, reason: str = "emergency stop (app)") -> bool:
+        """E-stop the drives; while the process is still starting, as soon as it runs."""
+        with self._lock:
+            if self._phase is SessionPhase.STARTING:
+                self._pending_estop = reason
+                return True
+        return self._command("emergency_stop", reason)
+
+    @property
+    def can_configure(self) -> bool:
+        """Whether the control process takes haptics / fusion changes while it runs."""
+        from hapticloud.hardware.control import ControlProcess
+
+        return callable(getattr(ControlProcess, "configure", None))
+
+    def configure(self, *, haptics: Any = None, fusion: Any = None) -> bool:
+        """Send new haptics and/or fusion parameters to the loop (False: not applied)."""
+        cp = self.process
+        if cp is None or not callable(getattr(cp, "configure", None)):
+            return False
+        try:
+            cp.configure(haptics=haptics, fusion=fusion)
+        except (OSError, RuntimeError, ValueError, TypeError) as err:
+            self.alarms.appendleft(Alarm(time.monotonic(), "app", f"configure refused: {err}"))
+            return False
+        return True
+
+
+def _describe(info: dict[str, Any]) -> str:
+    fifo = "SCHED_FIFO" if info.get("sched_fifo") else "no SCHED_FIFO"
+    return f"{info.get('emulator', '?')} emulator, {info.get('bus', '?')}, {fifo}"

@@ -1,0 +1,96 @@
+"""The window supervising a session: the control process (800 Hz, six emulated drives in their own
+process) beside the perception worker. Enable, e-stop by key, the force arrow, the Haptics table."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hapticloud.app.live_source import LiveSource, SimSettings
+from hapticloud.app.main_window import MainWindow
+from hapticloud.app.session import Session, SessionPhase
+from PyQt6 import QtCore
+
+FAST = SimSettings(decimation=2)
+TIMEOUT_MS = 20_000
+
+
+@pytest.fixture(scope="module")
+def supervised(qapp, request):
+    from pytestqt.qtbot import QtBot
+
+    qtbot = QtBot(request)
+    window = MainWindow(
+        lambda cfg, session=None: LiveSource(FAST, cfg, session=session),
+        title="demo",
+        make_session=lambda: Session("demo"),
+    )
+    window.resize(1280, 800)
+    window.show()
+    qtbot.waitExposed(window)
+    qtbot.waitUntil(lambda: window.session_panel.state_text() == "ready", timeout=TIMEOUT_MS)
+    yield window, qtbot
+    window.shutdown()
+    window.close()
+    assert window.session.phase is SessionPhase.CLOSED
+    assert window.session.result is not None  # stopped cleanly: the loop returned its log
+
+
+def _states(window: MainWindow) -> list[str]:
+    return [a.text.split(":")[0] for a in window.session.alarms if a.kind == "state"]
+
+
+def test_enable_takes_the_session_from_ready_to_enabled(supervised) -> None:
+    window, qtbot = supervised
+    panel = window.session_panel
+    assert panel.enable_button.isEnabled()
+    assert window.status.labels["session"].text().strip() == "READY"
+    qtbot.mouseClick(panel.enable_button, QtCore.Qt.MouseButton.LeftButton)
+    # "enabled" in a later snapshot's events (the watchdogs may fault it again on a loaded
+    # machine: the transition itself is what the button does).
+    qtbot.waitUntil(lambda: "enabled" in _states(window), timeout=5000)
+    assert panel.alarms.topLevelItemCount() > 0
+    snap = window.session.latest
+    assert snap.tick > 0 and len(window.session.history())
+
+
+def test_force_arrow_moves_without_adding_actors(supervised) -> None:
+    window, _ = supervised
+    view = window.view
+    actors = view.actor_count()
+    arrow = view.actor("force")
+    fake = SimpleNamespace(force_n=(0.0, 0.0, 10.0), hip_m=(0.3, 0.05, 0.98))
+    view.show_control(fake)
+    assert arrow.GetVisibility() and view.force_n == pytest.approx(10.0)
+    first = np.array(arrow.GetUserMatrix().GetElement(2, 3))
+    view.show_control(SimpleNamespace(force_n=(5.0, 0.0, 0.0), hip_m=(0.3, 0.05, 1.1)))
+    assert arrow.GetUserMatrix().GetElement(2, 3) == pytest.approx(1.1) != first
+    assert view.actor_count() == actors
+    view.show_control(SimpleNamespace(force_n=(0.0, 0.0, 0.0), hip_m=(0.3, 0.05, 1.1)))
+    assert not arrow.GetVisibility()
+    assert view.actor_count() == actors
+
+
+def test_haptics_table_is_in_the_panel(supervised) -> None:
+    window, _ = supervised
+    tabs = [window.panel.tabs.tabText(i) for i in range(window.panel.tabs.count())]
+    assert "Haptics" in tabs
+    editor = window.panel.editor("haptics.clearance_m")
+    assert editor is not None
+    # Editable exactly when the control process can take changes while it runs.
+    assert window.panel.table_read_only("haptics") == (not window.session.can_configure)
+
+
+def test_escape_emergency_stops_the_session(supervised) -> None:
+    window, qtbot = supervised
+    qtbot.keyClick(window.panel, QtCore.Qt.Key.Key_Escape)
+    assert window.stopped
+    qtbot.waitUntil(
+        lambda: (
+            window.session.latest is not None and window.session.latest.state == "emergency_stop"
+        ),
+        timeout=5000,
+    )
+    qtbot.waitUntil(lambda: window.session_panel.state_text() == "emergency_stop", timeout=2000)
+    assert window.session_panel.reset_button.isEnabled()
