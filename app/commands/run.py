@@ -41,6 +41,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="with --sweep: also run each value with the paper's formulation "
         "(no surface-velocity feed-forward)",
     )
+    parser.add_argument(
+        "--hardware",
+        action="store_true",
+        help="run the session in real time through the hardware layer: the 800 Hz control "
+        "process against six emulated CAN FD drives moving the scene's exoskeleton and patient, "
+        "perception outside the loop (not with --sweep or --plot)",
+    )
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_set_option(parser, "surface.speed_mps=2.0")
     parser.set_defaults(handler=run)
@@ -61,6 +68,10 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, overrides(args.set))
     if args.compare_paper and not args.sweep:
         raise ConfigError("--compare-paper: needs --sweep")
+    if args.hardware:
+        if args.sweep or args.plot:
+            raise ConfigError("--hardware: not with --sweep or --plot")
+        return _run_hardware(args, scene, say)
     try:
         if args.sweep:
             key, values = study.parse_sweep(args.sweep)
@@ -107,6 +118,30 @@ def run(args: argparse.Namespace) -> int:
         say(f"wrote {args.report}")
     if args.plot:
         _plot_single(record, Path(args.plot), say)
+    return 0
+
+
+def _run_hardware(args: argparse.Namespace, scene: Any, say: Any) -> int:
+    from hapticloud.core.sim.closed_loop import InfeasibleSceneError
+    from hapticloud.hardware.session.run import run_session, summary_lines
+
+    try:
+        rep = run_session(args.scene, overrides(args.set), args.duration, progress=say)
+    except InfeasibleSceneError as err:
+        if args.report:
+            _write_json(
+                args.report, {"scene": {"path": scene.path}, "feasible": False, "reason": str(err)}
+            )
+        print(f"hapticloud: error: scene is infeasible: {err}", file=sys.stderr)
+        return 2
+    except (RuntimeError, TimeoutError) as err:
+        print(f"hapticloud: error: {str(err).splitlines()[0]}", file=sys.stderr)
+        return 1
+    for line in summary_lines(rep):
+        say(line)
+    if args.report:
+        _write_json(args.report, rep)
+        say(f"wrote {args.report}")
     return 0
 
 

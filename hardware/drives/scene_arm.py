@@ -1,0 +1,152 @@
+"""The emulated arm of a scene: the exoskeleton as ``hapticloud run`` integrates it, with the
+scene's simulated patient pushing the handle.
+
+:class:`SceneArmFactory` is what :class:`~hapticloud.hardware.control.process.ControlProcess`
+takes as ``dynamics``: a small picklable object (the scene's name or path and its overrides) that
+the drive emulator calls with its robot model, in its own process, to get an
+:class:`~.emulator.ArmDynamics`. The scene is built there the way the deterministic simulation
+builds it (:class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim`): the same
+:class:`~hapticloud.core.sim.patient.PatientArm` (intent script, muscle spring-damper, posture
+torque) and the same :class:`~hapticloud.core.sim.exo.ExoPlant` parameters (substeps, the hand's
+mass at the HIP, unmodelled joint friction). Each call of the returned :class:`SceneArm` advances
+that plant by ``dt`` with the drives' torques held and the patient's forces applied (``J^T f`` of
+the hand force at the HIP, plus the null-space posture torque), from the joint state the emulator
+hands in.
+
+The patient's clock is the arm's own: time 0 is the first call and every call advances it by
+``dt``. The emulator holds a disabled arm still without calling the dynamics
+(``brake_when_disabled``), so the patient's script starts when the drives first apply torque,
+i.e. when the session is enabled, not when the process starts. A scene without ``[patient]``
+gets :class:`~.emulator.RigidArm` (nobody pushes the handle).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from hapticloud.core.robot.model import RobotModel
+from hapticloud.core.sim.exo import ExoPlant
+from hapticloud.core.sim.patient import PatientArm
+from numpy.typing import NDArray
+
+from .emulator import ArmDynamics, EmulatorConfig, RigidArm
+
+__all__ = ["SceneArm", "SceneArmFactory"]
+
+FloatArray = NDArray[np.float64]
+
+
+class SceneArm:
+    """:class:`~.emulator.ArmDynamics` of the exoskeleton with the scene's patient at the handle.
+
+    Parameters
+    ----------
+    plant
+        The plant to integrate (its joint state is overwritten by each call's ``q``, ``qd``).
+    patient
+        The patient's arm; its intent is read on the plant's clock (:attr:`t`).
+    """
+
+    def __init__(self, plant: ExoPlant, patient: PatientArm) -> None:
+        self.plant = plant
+        self.patient = patient
+        self.calls = 0
+
+    @property
+    def t(self) -> float:
+        """The patient's clock (s): 0 before the first call, then ``dt`` more per call."""
+        return float(self.plant.t)
+
+    @property
+    def hip(self) -> FloatArray:
+        """The HIP position (m, world) after the last call."""
+        return self.plant.model.hip_position().copy()
+
+    @property
+    def hand_force(self) -> FloatArray:
+        """What the handle's force sensor would read after the last call (N, world)."""
+        return self.plant.state().hand_force
+
+    def _forces(
+        self,
+        t: float,
+        hip: FloatArray,
+        hip_vel: FloatArray,
+        q: FloatArray,
+        qd: FloatArray,
+        J: FloatArray,
+        inertia: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        # As ClosedLoopSim.run's force model: muscle force at the hand, posture torque.
+        patient = self.patient
+        return patient.hand_force(t, hip, hip_vel), patient.posture_torque(q, qd, J, inertia)
+
+    def __call__(
+        self, q: FloatArray, qd: FloatArray, tau: FloatArray, dt: float
+    ) -> tuple[FloatArray, FloatArray]:
+        plant = self.plant
+        plant.q = np.array(q, dtype=np.float64)
+        plant.qd = np.array(qd, dtype=np.float64)
+        plant.dt = float(dt)
+        state = plant.step(np.array(tau, dtype=np.float64), self._forces)
+        self.calls += 1
+        return state.q, state.qd
+
+
+@dataclass(frozen=True)
+class SceneArmFactory:
+    """Picklable ``model -> ArmDynamics`` for a scene: :class:`SceneArm` with its patient, or
+    :class:`~.emulator.RigidArm` when the scene has none (see the module docstring).
+
+    Parameters
+    ----------
+    scene
+        Scene file or shipped scene name.
+    overrides
+        ``--set`` style overrides (``{"patient.stiffness_n_per_m": 300.0}``).
+    substeps
+        Plant integration steps per call; ``None``: the scene's ``loop.substeps``.
+
+    Examples
+    --------
+    >>> factory = SceneArmFactory("impacts")
+    >>> import pickle; pickle.loads(pickle.dumps(factory)) == factory
+    True
+    """
+
+    scene: str
+    overrides: Mapping[str, Any] | None = None
+    substeps: int | None = None
+
+    def build(self, model: RobotModel | None = None) -> tuple[ArmDynamics, Any]:
+        """The dynamics and the :class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim` it was
+        built from (for its ``q0``, ``hip0`` and ground truth)."""
+        from hapticloud.core.scene import load_scene
+        from hapticloud.core.sim.closed_loop import ClosedLoopSim
+
+        loaded = load_scene(self.scene, dict(self.overrides) if self.overrides else None)
+        if loaded.cameras:
+            # Only the patient and the plant are needed here: no rendering cameras.
+            names = [c.name for c in loaded.cameras]
+            loaded = loaded.with_overrides({f"cameras.{n}.model": "oracle" for n in names})
+        sim = ClosedLoopSim(loaded)
+        if model is None:
+            model = RobotModel.load(loaded.config.robot.urdf or None)
+        if sim.patient is None:
+            return RigidArm(model, EmulatorConfig().joint_damping_nms), sim
+        ref = sim.plant
+        plant = ExoPlant(
+            model,
+            sim.q0,
+            dt=ref.dt,
+            substeps=ref.substeps if self.substeps is None else int(self.substeps),
+            hand_mass_kg=ref.hand_mass_kg,
+            joint_friction_nms_per_rad=ref.friction,
+        )
+        return SceneArm(plant, sim.patient), sim
+
+    def __call__(self, model: RobotModel) -> ArmDynamics:
+        return self.build(model)[0]

@@ -1,0 +1,578 @@
+"""``hapticloud run SCENE --hardware``: a scene's session through the hardware layer, in real time.
+
+What runs where:
+
+- **control process** (:class:`~hapticloud.hardware.control.process.ControlProcess`): the 800 Hz
+  loop on absolute deadlines: drive feedback, session state machine, watchdogs, the fusion of the
+  camera estimates and the haptic tick built from the scene (as ``hapticloud run`` builds it),
+  torque commands over CAN FD;
+- **drive emulator process**: six emulated CiA 402 drives moving the exoskeleton, whose dynamics
+  are the scene's plant with the scene's patient pushing the handle
+  (:class:`~hapticloud.hardware.drives.scene_arm.SceneArmFactory`);
+- **perception process** (spawned here, outside the loop): each of the scene's cameras, at its
+  rate, renders the scene's world with the robot where the control loop says it is (the shared
+  :class:`~hapticloud.hardware.control.shared_state.RobotStateBlock`), runs its pipeline for that
+  HIP and sends the estimate (capture time on :func:`time.monotonic`) straight down the control
+  process's estimates pipe, no earlier than the camera's ``latency_s`` after capture; the loop
+  fuses the estimates at 800 Hz. An estimate the fusion would not admit (invalid: nothing near
+  the HIP; low quality) goes as a bare camera frame
+  (:func:`~hapticloud.hardware.control.process.send_camera_frame`): the camera watchdog sees the
+  camera alive, and the estimate watchdog, which ages with admitted estimates only, is not armed
+  by frames that carry nothing to fuse. Frames the renderer could not keep up with are dropped
+  and counted (``estimates.skipped_frames``);
+- **this process**: enables the session, drains the loop's snapshots and samples the robot's HIP
+  from the same block (every ~1 ms) for the ground truth: the true margin of the HIP sphere to
+  the scene's bodies and walls
+  (:meth:`~hapticloud.core.sim.closed_loop.ClosedLoopSim.true_margin`), which never reaches the
+  controller.
+
+Scene time 0 is the first tick of the enabled session (the patient's script starts when the
+drives first apply torque, a few ticks later). Unlike the deterministic ``hapticloud run`` this is
+real time: perception is asynchronous, its latency is what rendering and processing take on this
+machine, deadline misses are real, and two runs are not bit-identical.
+
+The control loop has no handle force sensor: the tick runs without ``interaction_torque`` (the
+deterministic run feeds it ``J^T F_hand`` when ``robot.force_sensor`` is set).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import multiprocessing as mp
+import time
+import traceback
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+__all__ = ["HARDWARE_MODE", "run_session", "summary_lines"]
+
+#: What the report says about how the session ran.
+HARDWARE_MODE = "through the hardware layer: control process + emulated drives"
+
+_READY = 2
+_ENABLED = 3
+_STATE_NAMES = {0: "disconnected", 1: "connected", 2: "ready", 3: "enabled", 4: "fault", 5: "estop"}
+
+
+def _num(x: float | None) -> float | None:
+    """JSON-safe float: ``None`` for NaN / inf / missing."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _pcts(values: np.ndarray, scale: float = 1.0) -> dict[str, float | None]:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return {"median": None, "p99": None, "max": None}
+    return {
+        "median": _num(np.median(v) * scale),
+        "p99": _num(np.percentile(v, 99) * scale),
+        "max": _num(v.max() * scale),
+    }
+
+
+class _HipSampler:
+    """Reads the robot state block; keeps one sample per control tick it sees."""
+
+    def __init__(self, read: Callable[[], Any]) -> None:
+        self._read = read
+        self.t: list[float] = []
+        self.hip: list[np.ndarray] = []
+        self.state: list[int] = []
+        self._last_tick = -1
+
+    def sample(self) -> Any:
+        st = self._read()
+        if st is not None and st.tick != self._last_tick:
+            self._last_tick = st.tick
+            self.t.append(st.t)
+            self.hip.append(st.hip_m)
+            self.state.append(st.state_code)
+        return st
+
+
+# ----- perception, in a process of its own -------------------------------------------------------
+def _perception_main(
+    scene: str,
+    overrides: dict[str, Any] | None,
+    block_name: str,
+    n_joints: int,
+    est_conn: Any,
+    conn: Any,
+) -> None:
+    try:
+        _perception(scene, overrides, block_name, n_joints, est_conn, conn)
+    except BaseException:
+        try:
+            conn.send(("error", traceback.format_exc()))
+        except Exception:
+            pass
+
+
+def _perception(
+    scene: str,
+    overrides: dict[str, Any] | None,
+    block_name: str,
+    n_joints: int,
+    est_conn: Any,
+    conn: Any,
+) -> None:
+    """The scene's cameras against the live robot state until told to stop (see the module
+    docstring); answers ``("result", stats)``."""
+    from hapticloud.core.loop import admit
+    from hapticloud.core.scene import load_scene
+    from hapticloud.core.sim.closed_loop import ClosedLoopSim
+    from hapticloud.core.threads import limit_blas_threads
+
+    from ..control.process import send_camera_frame, send_estimate
+    from ..control.shared_state import RobotStateBlock
+
+    limit_blas_threads(1)
+    sim = ClosedLoopSim(load_scene(scene, overrides))
+    cams = sim.cameras
+    block = RobotStateBlock.attach(block_name, n_joints)
+    conn.send(("ready", [c.spec.name for c in cams]))
+    msg = conn.recv()
+    if msg[0] != "go":
+        block.close()
+        conn.send(("result", {}))
+        return
+    t_origin = float(msg[1])
+    names = [c.spec.name for c in cams]
+    sent = dict.fromkeys(names, 0)
+    valid = dict.fromkeys(names, 0)
+    admitted = dict.fromkeys(names, 0)
+    skipped = dict.fromkeys(names, 0)
+    perception_ms: list[float] = []
+    delivery_ms: list[float] = []
+    # Camera k fires at t_origin + phase_k + m / rate (as in the simulation's schedule).
+    next_t = {c.spec.name: t_origin + c.phase_s for c in cams}
+    # (send at, capture t, estimate or None, camera)
+    pending: list[tuple[float, float, Any, str]] = []
+    try:
+        while not conn.poll():
+            now = time.monotonic()
+            if pending:
+                keep = []
+                for item in pending:
+                    if item[0] <= now:
+                        if item[2] is not None:
+                            send_estimate(est_conn, item[2])
+                        else:
+                            send_camera_frame(est_conn, item[3], item[1])
+                        delivery_ms.append((time.monotonic() - item[1]) * 1e3)
+                    else:
+                        keep.append(item)
+                pending = keep
+            due = [c for c in cams if next_t[c.spec.name] <= now]
+            if not due:
+                wake = min([now + 0.01, *next_t.values(), *(p[0] for p in pending)])
+                time.sleep(max(0.0, wake - time.monotonic()))
+                continue
+            cam = min(due, key=lambda c: next_t[c.spec.name])
+            name = cam.spec.name
+            st = block.read()
+            if st is not None:
+                p0 = time.perf_counter()
+                est = sim._capture(cam, max(0.0, st.t - t_origin), st.q_rad, st.hip_m)
+                perception_ms.append((time.perf_counter() - p0) * 1e3)
+                est = dataclasses.replace(est, t=st.t, seq=cam.frames)
+                cam.frames += 1
+                sent[name] += 1
+                valid[name] += bool(est.valid)
+                ok = admit(est, cam.spec.min_quality, cam.spec.fuse_fallbacks)
+                admitted[name] += ok
+                pending.append((st.t + cam.spec.latency_s, st.t, est if ok else None, name))
+            # The next frame on the camera's grid; frames the renderer could not keep up with
+            # are dropped, as a camera's driver drops them.
+            step = 1.0 / cam.spec.rate_hz
+            nxt = next_t[name] + step
+            late = time.monotonic()
+            if nxt <= late:
+                missed = math.floor((late - nxt) / step) + 1
+                skipped[name] += missed
+                nxt += missed * step
+            next_t[name] = nxt
+    finally:
+        block.close()
+    conn.send(
+        (
+            "result",
+            {
+                "sent": sent,
+                "valid": valid,
+                "admitted": admitted,
+                "skipped_frames": skipped,
+                "perception_ms": _pcts(np.array(perception_ms)),
+                "capture_to_send_ms": _pcts(np.array(delivery_ms)),
+            },
+        )
+    )
+
+
+class _Perception:
+    """Parent's handle on the perception process."""
+
+    def __init__(
+        self, scene: str, overrides: dict[str, Any] | None, cp: Any, n_joints: int
+    ) -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=_perception_main,
+            args=(scene, overrides, cp.state_block_name, n_joints, cp.estimate_connection, child),
+            name="hapticloud-perception",
+            daemon=True,
+        )
+        self._proc.start()
+        child.close()
+        self.error: str | None = None
+
+    def _recv(self, timeout: float) -> tuple[str, Any]:
+        if not self._conn.poll(timeout):
+            raise TimeoutError("perception process did not answer in time")
+        kind, payload = self._conn.recv()
+        if kind == "error":
+            self.error = payload
+            raise RuntimeError(f"perception process failed:\n{payload}")
+        return kind, payload
+
+    def wait_ready(self, timeout: float = 60.0) -> list[str]:
+        return self._recv(timeout)[1]
+
+    def go(self, t_origin: float) -> None:
+        self._conn.send(("go", t_origin))
+
+    def stop(self, timeout: float = 10.0) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        try:
+            self._conn.send(("stop",))
+            out = self._recv(timeout)[1]
+        except (OSError, EOFError, RuntimeError, TimeoutError) as err:
+            self.error = self.error or str(err)
+        self._proc.join(timeout)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(2.0)
+        self._conn.close()
+        return out
+
+
+def _wait_state(cp: Any, code: int, timeout_s: float) -> Any:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        st = cp.robot_state()
+        if st is not None and st.state_code == code:
+            return st
+        if not cp.alive:
+            break
+        time.sleep(0.002)
+    raise RuntimeError(
+        f"control process: session did not reach {_STATE_NAMES.get(code, code)} in "
+        f"{timeout_s:g} s{': ' + cp.error if cp.error else ''}"
+    )
+
+
+def run_session(
+    scene: str,
+    overrides: Mapping[str, Any] | None = None,
+    duration_s: float | None = None,
+    *,
+    emulator: str = "process",
+    cameras: bool = True,
+    fifo_priority: int | None = 80,
+    plant_substeps: int | None = 1,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run ``scene`` in real time through the control process and the emulated drives.
+
+    Parameters
+    ----------
+    scene
+        Scene file or shipped scene name.
+    overrides
+        ``--set`` style overrides.
+    duration_s
+        Seconds of enabled session (default: the scene's ``duration_s``).
+    emulator
+        Where the drives run (:data:`~hapticloud.hardware.control.process.EMULATOR_MODES`).
+    cameras
+        Run the scene's cameras (the perception process); ``False``: no estimates are sent
+        (walls only, or the loop holds no surface).
+    fifo_priority
+        SCHED_FIFO priority the control loop asks for (``None``: do not ask).
+    plant_substeps
+        Integration steps of the emulated plant per drive cycle (1/800 s); ``None``: the scene's
+        ``loop.substeps``, as the deterministic run. One step (as the emulator's
+        :class:`~hapticloud.hardware.drives.emulator.RigidArm`) costs the emulator process
+        ~130 µs per cycle instead of ~500 µs.
+    progress
+        Called with a line of text now and then.
+
+    Returns
+    -------
+    dict
+        The JSON-ready report (see :func:`summary_lines` for the headline figures).
+
+    Raises
+    ------
+    ConfigError
+        Bad scene, overrides or duration (including an infeasible scene).
+    RuntimeError
+        The control process failed.
+    """
+    from hapticloud.core.errors import ConfigError
+    from hapticloud.core.scene import load_scene
+    from hapticloud.core.sim.closed_loop import ClosedLoopSim
+
+    from ..control.process import EMULATOR_MODES, PERIOD_S, STATE_CODES, ControlProcess
+    from ..drives.scene_arm import SceneArmFactory
+
+    say = progress or (lambda _text: None)
+    if emulator not in EMULATOR_MODES:
+        raise ConfigError(f"emulator = {emulator!r}: expected one of {', '.join(EMULATOR_MODES)}")
+    ovr = dict(overrides) if overrides else None
+    loaded = load_scene(scene, ovr)
+    sim = ClosedLoopSim(loaded)  # perception here, and the ground truth; raises if infeasible
+    cfg = loaded.config
+    duration = cfg.scene.duration_s if duration_s is None else float(duration_s)
+    if not (math.isfinite(duration) and duration > 0.0):
+        raise ConfigError(f"duration = {duration}: must be a positive number of seconds")
+    if abs(cfg.loop.rate_hz - 1.0 / PERIOD_S) > 1e-6:
+        raise ConfigError(
+            f"loop.rate_hz = {cfg.loop.rate_hz:g}: the control process runs at {1 / PERIOD_S:g} Hz"
+        )
+    cams = sim.cameras if cameras else []
+    cp = ControlProcess(
+        scene,
+        ovr,
+        emulator=emulator,
+        fifo_priority=fifo_priority,
+        dynamics=SceneArmFactory(scene, ovr, plant_substeps),
+        log_ticks=int((duration + 10.0) / PERIOD_S),
+    )
+    say(f"starting the control process and the emulated drives ({emulator}) ...")
+    wall0 = time.monotonic()
+    info = cp.start(timeout=120.0)
+    sampler = _HipSampler(cp.robot_state)
+    perception = None
+    estimates: dict[str, Any] = {}
+    snaps: list[Any] = []
+    t_enabled = math.nan
+    result: dict[str, Any] | None = None
+    try:
+        if cams:
+            perception = _Perception(scene, ovr, cp, sim.robot.n_joints)
+            perception.wait_ready()
+        _wait_state(cp, _READY, 30.0)
+        cp.enable("hapticloud run --hardware")
+        t_enabled = _wait_state(cp, _ENABLED, 5.0).t
+        if perception is not None:
+            perception.go(t_enabled)
+        say(f"session enabled; running {duration:g} s of {loaded.name} in real time ...")
+        t_end = t_enabled + duration
+        next_report = t_enabled + 1.0
+        next_drain = 0.0
+        while True:
+            now = time.monotonic()
+            if now >= t_end or not cp.alive:
+                if cp.alive:
+                    cp.disable()  # torque off at the end of the scene, before the teardown
+                break
+            sampler.sample()
+            if now >= next_drain:
+                snaps.extend(cp.snapshots())
+                next_drain = now + 0.05
+            if now >= next_report:
+                say(f"  t = {now - t_enabled:5.1f} s")
+                next_report += 1.0
+            time.sleep(0.001)
+        snaps.extend(cp.snapshots())
+    finally:
+        try:
+            if perception is not None:
+                estimates = perception.stop()
+        finally:
+            result = cp.stop(timeout=20.0)
+    if result is None:
+        raise RuntimeError(f"control process failed: {cp.error or 'no result'}")
+    return _report(
+        loaded,
+        sim,
+        info,
+        result,
+        cp.error,
+        snaps,
+        sampler,
+        t_enabled,
+        duration,
+        cams,
+        estimates,
+        emulator,
+        time.monotonic() - wall0,
+        STATE_CODES,
+    )
+
+
+def _report(
+    loaded: Any,
+    sim: Any,
+    info: Mapping[str, Any],
+    result: Mapping[str, Any],
+    error: str | None,
+    snaps: list[Any],
+    sampler: _HipSampler,
+    t_enabled: float,
+    duration: float,
+    cams: list[Any],
+    estimates: dict[str, Any],
+    emulator: str,
+    wall_s: float,
+    codes: Mapping[str, int],
+) -> dict[str, Any]:
+    log = result["log"]
+    state = log["state"]
+    enabled = state == codes["enabled"]
+    tau = log["tau_sent"]
+    first_on = int(np.argmax(enabled)) if enabled.any() else len(state)
+    deadline = dict(result["deadline"])
+    d_proj = np.where(enabled, log["d_proj_m"], np.nan)
+    approach = np.where(enabled, log["approach_mps"], np.nan)
+    capped = enabled & np.isfinite(log["approach_limit_mps"])
+
+    # Ground truth from the sampled HIP, on the scene clock (0 = the enabled session's start).
+    t = np.array(sampler.t)
+    hips = np.array(sampler.hip).reshape(-1, 3)
+    st = np.array(sampler.state)
+    on = (st == codes["enabled"]) & (t >= t_enabled) if t.size else np.zeros(0, bool)
+    ts = t[on] - t_enabled
+    margins = np.array([sim.true_margin(h, float(s))[0] for h, s in zip(hips[on], ts, strict=True)])
+    r = sim.hip_radius_m
+    truth: dict[str, Any] = {"samples": int(margins.size)}
+    if margins.size:
+        k = int(np.argmin(margins))
+        gaps = np.diff(ts)
+        truth.update(
+            {
+                "sample_rate_hz": _num(margins.size / max(ts[-1] - ts[0], 1e-9)),
+                "largest_gap_ms": _num(gaps.max() * 1e3) if gaps.size else None,
+                "min_margin_m": _num(margins[k]),
+                "t_min_margin_s": _num(ts[k]),
+                "hip_at_min_m": [float(x) for x in hips[on][k]],
+                "max_penetration_m": _num(max(0.0, -float(margins[k]))),
+                "min_center_margin_m": _num(margins[k] + r),
+            }
+        )
+        # The logged d_proj at the sample times: what the controller believed vs the truth.
+        lt = log["t"]
+        d_at = np.interp(t[on], lt, np.where(np.isfinite(d_proj), d_proj, np.nan))
+        err = d_at - margins
+        near = np.isfinite(err) & (margins < 0.05)
+        truth["d_proj_minus_true_mm_near"] = _pcts(np.abs(err[near]), 1e3) if near.any() else None
+        step = max(1, margins.size // 2000)
+        truth["series"] = {
+            "t_s": [round(float(x), 4) for x in ts[::step]],
+            "margin_m": [round(float(x), 6) for x in margins[::step]],
+        }
+    fused_valid = [bool(s.fused_valid) for s in snaps if s.state == "enabled"]
+    est_age = np.array([s.estimate_age_s for s in snaps if s.state == "enabled"])
+    est_out = dict(estimates)
+    est_out.update(
+        {
+            "cameras": [c.spec.name for c in cams],
+            "models": [c.spec.model for c in cams],
+            "fused_valid_fraction": _num(np.mean(fused_valid)) if fused_valid else None,
+            "fused_valid_ever": any(fused_valid),
+            "estimate_age_ms": _pcts(est_age, 1e3),
+            "snapshots": len(snaps),
+        }
+    )
+    v_pos = approach[np.isfinite(approach)]
+    return {
+        "mode": HARDWARE_MODE,
+        "scene": {
+            "name": loaded.name,
+            "path": loaded.path,
+            "description": loaded.config.scene.description,
+        },
+        "duration_s": duration,
+        "wall_time_s": wall_s,
+        "emulator": emulator,
+        "error": error,
+        "process": {
+            k: info.get(k)
+            for k in ("sched_fifo", "sched_note", "mlockall", "bus", "emulator_info", "cpu")
+        },
+        "hip_radius_m": sim.hip_radius_m,
+        "patient": sim.patient is not None,
+        "ticks": int(result["ticks"]),
+        "enabled_ticks": int(enabled.sum()),
+        "reached_enabled": bool(enabled.any()),
+        "torque_before_enable_nm": float(np.abs(tau[:first_on]).max()) if first_on else 0.0,
+        "control": {
+            "misses": int(deadline.get("misses", 0)),
+            "misses_per_10k": _num(deadline.get("misses_per_10k")),
+            "overruns": deadline.get("overruns"),
+            "skipped": deadline.get("skipped"),
+            "tick_us": _pcts(log["tick_us"]),
+            "tick_us_enabled": _pcts(log["tick_us"][enabled]),
+            "lateness_us": _pcts(log["lateness_us"]),
+            "deadline": {k: v for k, v in deadline.items() if not isinstance(v, str)},
+            "link_counters": dict(result["link_counters"]),
+            "link_events": [list(e) for e in result["link_events"][-20:]],
+            "emulator_events": [list(e) for e in result["emulator_events"][-20:]],
+        },
+        "session": {
+            "transitions": [list(tr) for tr in result["transitions"]],
+            "reactions": [list(rx) for rx in result["reactions"]],
+            "reaction_ticks": {
+                name: int((log["reaction"][enabled] == level).sum())
+                for level, name in enumerate(("none", "hold_surface", "damping", "torque_off"))
+            },
+        },
+        "haptics": {
+            "min_d_proj_m": _num(np.nanmin(d_proj)) if np.isfinite(d_proj).any() else None,
+            "approach_mps": {
+                "max": _num(v_pos.max()) if v_pos.size else None,
+                "p99": _num(np.percentile(v_pos, 99)) if v_pos.size else None,
+                "median": _num(np.median(v_pos)) if v_pos.size else None,
+            },
+            "approach_capped_ticks": int(capped.sum()),
+        },
+        "estimates": est_out,
+        "truth": truth,
+    }
+
+
+def summary_lines(rep: Mapping[str, Any]) -> list[str]:
+    """A few human-readable lines of a :func:`run_session` report."""
+
+    def mm(x: float | None) -> str:
+        return "n/a" if x is None else f"{x * 1e3:+.1f} mm"
+
+    c, tr, est = rep["control"], rep["truth"], rep["estimates"]
+    sent = est.get("sent", {})
+    trs = rep["session"]["transitions"]
+    states = " -> ".join([trs[0][1], *(t[2] for t in trs)]) if trs else "no transitions"
+    lines = [
+        f"{rep['scene']['name']}: {rep['duration_s']:g} s {rep['mode']} ({rep['emulator']})",
+        f"control: {rep['ticks']} ticks ({rep['enabled_ticks']} enabled), "
+        f"misses {c['misses']} ({c['misses_per_10k'] or 0:.1f} per 10k), tick median "
+        f"{c['tick_us']['median'] or 0:.0f} us, p99 {c['tick_us']['p99'] or 0:.0f} us",
+        f"session: {states}; {len(rep['session']['reactions'])} watchdog reaction changes",
+        f"estimates sent: {sum(sent.values())} "
+        f"({', '.join(f'{k} {v}' for k, v in sent.items()) or 'no cameras'}), "
+        f"fused surface valid {100 * (est['fused_valid_fraction'] or 0):.0f}% of the time",
+        f"true min margin {mm(tr.get('min_margin_m'))} "
+        f"(max penetration {mm(tr.get('max_penetration_m'))}), "
+        f"min d_proj {mm(rep['haptics']['min_d_proj_m'])}",
+    ]
+    if rep.get("error"):
+        lines.append(f"control process error: {rep['error']}")
+    return lines
