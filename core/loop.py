@@ -324,6 +324,31 @@ class HapticLoop:
             cfg.velocity.activation_distance_m if cfg.velocity_enabled else -math.inf,
         )
 
+    def warm_up(self, t: float, q: ArrayLike, qd: ArrayLike) -> None:
+        """Run the tick's every path once (free motion, a surface in reach, in contact) and
+        forget them: the first solve of a hierarchy allocates its work space and fills lazy
+        caches (~10 ms measured); a real-time loop calls this before its first deadline."""
+        self.robot.update(q, qd)
+        hip = np.array(self.robot.hip_position())
+        normal = np.array([0.0, 0.0, 1.0])
+        saved = self.fusion
+        self.fusion = None
+        try:
+            for gap in (1.0, 0.02, 0.002, -0.002):
+                point = hip - normal * (self.hip_radius_m + gap)
+                fused = FusedSurface(
+                    t, point, normal, True, _ZERO3, point, normal, 0.0, False, "", 3, 2, (), 0
+                )
+                self.tick(t, q, qd, fused=fused)
+            self.tick(t, q, qd, interaction_torque=np.zeros(self.n_joints))
+        finally:
+            self.fusion = saved
+            self._held = None
+            self._held_t = -math.inf
+            self._solved_last = False
+            self._last_x = None
+            self.last_fused = None
+
     # ----- one tick ------------------------------------------------------------------------------
     def surfaces(self, hip: FloatArray, primary: SurfacePoint | None) -> list[SurfacePoint]:
         """The surfaces the constraints act on this tick: the perceived one (if any), then walls.

@@ -229,3 +229,16 @@ def test_short_push_against_a_wall_keeps_the_margin(robot: RobotModel) -> None:
         margins.append(wall.distance(state.hip) - R_HIP)
     assert min(margins) >= 0.0
     assert margins[-1] < 0.01  # it did reach the wall and rests on it
+
+
+def test_warm_up_leaves_no_trace(robot: RobotModel) -> None:
+    """A warmed-up loop ticks exactly like a fresh one: no held surface, no solver state."""
+    q, qd = robot.q_home, np.zeros(6)
+    fresh = _loop(robot, [], fusion=_fed_fusion(0.0))
+    warmed = _loop(robot, [], fusion=_fed_fusion(0.0))
+    warmed.warm_up(0.0, q, qd)
+    assert warmed.fusion is not None and warmed.last_fused is None
+    for t in (0.19, 0.6, 0.8):  # live surface, then stale, then held past its time
+        a, b = fresh.tick(t, q, qd), warmed.tick(t, q, qd)
+        np.testing.assert_array_equal(a.tau, b.tau)
+        assert (a.nearest, a.rows, a.fused_valid) == (b.nearest, b.rows, b.fused_valid)
