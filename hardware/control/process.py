@@ -147,6 +147,8 @@ _LOG_FIELDS = (
     "publish_us",
 )
 _MAX_EVENTS_PER_SNAPSHOT = 8
+#: Ticks of fault-reset controlwords a reset request sends (the drives clear on its rising edge).
+_FAULT_RESET_TICKS = 8
 
 
 def _writable(fd: int) -> bool:
@@ -388,6 +390,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
         fed_estimates = False
         camera_last: dict[str, float] = {}
         fault_reset_ticks = 0
+        reset_pending = False
         seq = 0
         dropped = 0
         events: list[tuple[int, float, str, str]] = []
@@ -411,7 +414,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
         poller.register(est_fd, select.POLLIN)
 
         def handle(cmd: tuple[Any, ...], t: float) -> bool:
-            nonlocal fault_reset_ticks, fusion
+            nonlocal fault_reset_ticks, fusion, reset_pending
             name = cmd[0]
             if name == "stop":
                 return False
@@ -422,9 +425,10 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             elif name == "estop":
                 machine.emergency_stop(t, cmd[1] if len(cmd) > 1 else "emergency stop")
             elif name == "reset":
-                ok, why = wd.reset(t)
-                machine.reset(t, cleared=ok, reason=why)
-                fault_reset_ticks = 8
+                # Fault-reset controlwords go out for a few ticks first; the reset is decided
+                # when the drives' fault bits have cleared, or refused once they are spent.
+                fault_reset_ticks = _FAULT_RESET_TICKS
+                reset_pending = True
             elif name == "configure":
                 haptics_cfg, fusion_cfg = cmd[1], cmd[2]
                 if haptics_cfg is not None:
@@ -497,21 +501,35 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             if duration is not None and t - t_begin >= duration:
                 running = False
             state = machine.state
+            drives_ok = fb.complete and not fb.any_stale and not fb.any_fault_bit
             if state is SessionState.DISCONNECTED:
-                if fb.complete and not fb.any_stale and not fb.any_fault_bit:
+                if drives_ok:
                     machine.connect(t, "drive feedback complete")
                     machine.drives_ready(t, "drives ready to switch on")
             else:
+                # The session's heartbeat timeout decides (WatchdogConfig), from the age of the
+                # oldest heartbeat; the link's shorter verdict is only an event in its log.
                 reaction = wd.check(
                     t,
                     camera_last,
                     (t - est_time) if fed_estimates else 0.0,
                     fb.oldest_age_s,
-                    fb.any_heartbeat_lost,
+                    False,
                     fb.any_fault_bit,
                     fb.bus_off,
+                    heartbeat_age_s=fb.oldest_heartbeat_age_s,
                 )
                 apply_reaction(machine, reaction, t)
+                if reset_pending and wd.torque_off_cleared:
+                    ok, why = wd.reset(t)
+                    machine.reset(t, cleared=ok, reason=why)
+                    reset_pending = False
+                elif reset_pending and fault_reset_ticks == 0:
+                    ok, why = wd.reset(t)
+                    machine.reset(t, cleared=ok, reason=why)
+                    reset_pending = False
+                if machine.state is SessionState.CONNECTED and drives_ok:
+                    machine.drives_ready(t, "drives ready again")
             reaction = wd.reaction
             level = reaction.level
             # Hold the last surface, still, with the approach speed capped at v_min.
@@ -541,11 +559,12 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                     tau = res.tau
             else:
                 tau = zeros
+                if fault_reset_ticks > 0:
+                    fault_reset_ticks -= 1
                 if state is SessionState.EMERGENCY_STOP:
                     target = DriveTarget.QUICK_STOP
                 elif fault_reset_ticks > 0:
                     target = DriveTarget.FAULT_RESET
-                    fault_reset_ticks -= 1
                 else:
                     target = DriveTarget.DISABLED
             sent = link.send_command(tau, link.controlwords(target))

@@ -154,6 +154,8 @@ class DriveFeedback:
     any_stale: bool = True
     any_heartbeat_lost: bool = False
     any_fault_bit: bool = False
+    #: The largest ``heartbeat_age_s``, a never-heard drive counting as old as the link.
+    oldest_heartbeat_age_s: float = math.inf
 
     def bus_load_since(self, earlier: DriveFeedback) -> float:
         """Observed bus load between ``earlier`` and this snapshot (fraction of the time the
@@ -633,9 +635,12 @@ class DriveLink:
         age_list = [now - t for t in self._sample_time]
         oldest = max(age_list)
         age = np.array(age_list)
-        hb_age = np.array([now - t for t in self._hb_time])
+        hb_list = [now - t for t in self._hb_time]
+        hb_age = np.array(hb_list)
         cfg = self._cfg
         hb_ref = np.where(np.isfinite(hb_age), hb_age, now - self._start)
+        # Never heard: as old as the link.
+        oldest_hb = min(max(hb_list), now - self._start)
         hb_lost = hb_ref > cfg.heartbeat_timeout_s
         for i in range(n):
             lost = bool(hb_lost[i])
@@ -666,6 +671,7 @@ class DriveLink:
             oldest_age_s=oldest,
             any_stale=oldest > cfg.feedback_timeout_s,
             any_heartbeat_lost=any(self._hb_lost),
+            oldest_heartbeat_age_s=oldest_hb,
             any_fault_bit=any(sw & _FAULT_BIT for sw in self._sw),
         )
 
