@@ -68,6 +68,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         "CAN FD bus, like real drives (default); stepped inside the tick; or a thread of the "
         "control process",
     )
+    loop.add_argument(
+        "--isolate-cpu",
+        action="store_true",
+        help="with --bus: the control process on the last CPU, perception and the drives on "
+        "the others",
+    )
+    loop.add_argument(
+        "--baseline",
+        action="store_true",
+        help="with --bus: then run a null loop (spins the measured median body per tick, same "
+        "real-time set-up, same load) for as long: the machine's floor of misses",
+    )
     add_set_option(loop, "haptics.force_enabled=false")
     loop.set_defaults(handler=run_loop)
     gui = studies.add_parser(
@@ -111,6 +123,8 @@ def run_loop(args: argparse.Namespace) -> int:
             sys.stdout,
             with_perception=args.with_perception,
             emulator=args.emulator,
+            isolate_cpu=args.isolate_cpu,
+            baseline=args.baseline,
         )
     from hapticloud.core.studies import loop_bench
 

@@ -6,20 +6,22 @@ optionally while the parent process runs perception for both simulated D435s (on
 :class:`~hapticloud.hardware.sources.SimulatedCameraSource` reader thread each, feeding a
 :class:`~hapticloud.core.perception.CameraPipeline` per camera, as the session process would).
 
-Figures (µs): ``tick_us`` is the whole loop body end to end (poll feedback, commands and
-estimates, watchdogs, the fusion sample, the haptic tick, command + SYNC, the stepped emulator's
-answer when it runs in the tick, the shared-memory state, the log and the snapshot);
-``master_us`` is that without the haptic tick and the emulator; ``breakdown_us`` splits it into
-``poll`` (feedback frames in), ``inputs`` (commands, estimates, watchdogs, fusion sample),
-``send`` (command + SYNC out) and ``publish`` (state, log, snapshot); ``lateness_us`` is the start
-of a tick after its deadline. With ``emulator="process"`` (the default) the drives answer from
-their own process, as real drives do from their own hardware. A *miss* is a tick that started
-more than one period late or whose work ran
-past the next deadline (:mod:`.deadline`).
+Figures (µs): ``tick_us`` is the tick end to end, feedback in to command out: poll the feedback
+frames, commands, watchdogs, the fusion sample, the haptic tick, command + SYNC on the bus (and
+the stepped emulator's answer when it runs in the tick). ``body_us`` is everything the loop does
+in its period, which the deadline sees: the tick, then publishing (shared-memory state, log,
+snapshot) and adding the estimates that arrived to the fusion (a refit), both after the command
+is out. ``master_us`` is the tick without the haptic tick and the emulator; ``breakdown_us``
+splits the body into ``poll``, ``inputs`` (commands, watchdogs, fusion sample), ``send``,
+``publish`` and ``fusion``; ``lateness_us`` is the start of a tick after its deadline. With
+``emulator="process"`` (the default) the drives answer from their own process, as real drives do
+from their own hardware. A *miss* is a tick that started more than one period late or whose
+body ran past the next deadline (:mod:`.deadline`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
@@ -48,7 +50,7 @@ def _stats(a: np.ndarray) -> dict[str, float]:
 class _Perception:
     """Both simulated cameras rendered and processed in this (the parent) process."""
 
-    def __init__(self, decimation: int = 1) -> None:
+    def __init__(self, decimation: int = 1, control: ControlProcess | None = None) -> None:
         from hapticloud.core.perception import CameraPipeline
         from hapticloud.core.sim import demo_scene
 
@@ -63,6 +65,10 @@ class _Perception:
         self.sources = simulated_pair(scene, rate_hz=30.0)
         self.pipes = [CameraPipeline(camera=s.name) for s in self.sources]
         self.processed = [0, 0]
+        # Estimates go to the control loop's fusion, as in a session (the loop pays for adding
+        # them and refitting); one pipe, two camera threads: a lock.
+        self._control = control
+        self._send_lock = threading.Lock()
         self.errors: list[str] = []
         self._stop = threading.Event()
         self.threads = [
@@ -79,8 +85,11 @@ class _Perception:
                 frame = src.read(0.1)
                 if frame is None:
                     continue
-                pipe.process_depth(frame, self.hip)
+                est = pipe.process_depth(frame, self.hip)
                 self.processed[i] += 1
+                if self._control is not None:
+                    with self._send_lock:
+                        self._control.send_estimate(dataclasses.replace(est, t=time.monotonic()))
             except Exception as exc:
                 self.errors.append(repr(exc))
                 if len(self.errors) > 10:
@@ -108,11 +117,18 @@ def run_bench(
     emulator: str = "process",
     fifo_priority: int | None = 80,
     isolate_cpu: bool = False,
+    baseline: bool = False,
 ) -> dict[str, Any]:
     """Run the control process with bus I/O for ``duration_s`` s; return the JSON-ready result.
 
-    ``isolate_cpu``: pin the control process to the last CPU and this process (perception) to
-    the others (needs >= 2 CPUs; an experiment, off by default).
+    ``isolate_cpu``: pin the control process to the last CPU and this process (perception, and
+    the drives' process it starts) to the others (needs >= 2 CPUs).
+
+    ``baseline``: then, under the same load (perception still running, same CPU placement), run
+    a *null loop* for ``duration_s`` as well: a process with the same real-time set-up
+    (SCHED_FIFO, mlockall, gc frozen, same pinning) whose every tick only spins for the measured
+    median body time. Its misses are what this machine gives any loop of that length: the floor
+    under the figure measured for ours.
     """
     cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     control_cpu = cpus[-1] if isolate_cpu and len(cpus) >= 2 else None
@@ -130,7 +146,7 @@ def run_bench(
     perception = None
     try:
         if with_perception:
-            perception = _Perception()
+            perception = _Perception(control=cp)
         # Let the drives settle, then enable: the measurement covers the ENABLED session only.
         time.sleep(0.2)
         cp.enable("bench")
@@ -142,6 +158,12 @@ def run_bench(
         while time.monotonic() < end:
             time.sleep(0.05)
             n_snaps += len(cp.snapshots())
+        res = cp.stop(timeout=30.0)
+        floor = None
+        if baseline and res is not None:
+            body = res["log"]["body_us"][res["log"]["t"] >= t_mark]
+            work_us = float(np.median(body)) if body.size else 300.0
+            floor = null_loop(work_us, duration_s, cpu=control_cpu, fifo_priority=fifo_priority)
     finally:
         perc = perception.close() if perception is not None else None
         res = cp.stop(timeout=30.0)
@@ -156,7 +178,7 @@ def run_bench(
     # Misses inside the measured window, by the deadline loop's definition, from the log.
     period_us = res["deadline"]["period_us"]
     late = log["lateness_us"][sel]
-    work = log["tick_us"][sel]
+    work = log["body_us"][sel]
     missed = (late > period_us) | (late + work > period_us)
     # Deadlines without a tick at all (the loop resumed on the next future one) are misses too.
     k = log["k"][sel]
@@ -186,8 +208,10 @@ def run_bench(
         "control_tick_us": _stats(log["control_us"][sel]),
         "bus_master_us": _stats(log["master_us"][sel]),
         "emulator_us": _stats(log["emulator_us"][sel]),
+        "body_us": _stats(work),
         "breakdown_us": {
-            part: _stats(log[f"{part}_us"][sel]) for part in ("poll", "inputs", "send", "publish")
+            part: _stats(log[f"{part}_us"][sel])
+            for part in ("poll", "inputs", "send", "publish", "fusion")
         },
         "tick_without_emulator_us": _stats(tick - log["emulator_us"][sel]),
         "sched_fifo": bool(info["sched_fifo"]),
@@ -209,6 +233,8 @@ def run_bench(
         "snapshots_dropped": res["snapshots_dropped"],
         "transitions": [t[1:] for t in res["transitions"]],
         "perception": perc,
+        "baseline_null_loop": floor,
+        "isolate_cpu": control_cpu is not None,
         "targets": TARGETS,
         "python": platform.python_version(),
         "machine": platform.machine(),
@@ -221,6 +247,58 @@ def run_bench(
     return out
 
 
+def _null_loop_child(work_s: float, duration_s: float, params: dict[str, Any], conn: Any) -> None:
+    from .deadline import DeadlineLoop, lock_memory
+
+    if params["cpu"] is not None:
+        os.sched_setaffinity(0, {params["cpu"]})
+    lock_memory()
+    dl = DeadlineLoop(1.0 / 800.0, fifo_priority=params["fifo_priority"], capacity=1 << 18)
+    dl.start()
+    try:
+        end = time.perf_counter() + duration_s
+        while time.perf_counter() < end:
+            dl.wait()
+            stop = time.perf_counter() + work_s
+            while time.perf_counter() < stop:
+                pass
+            dl.done()
+    finally:
+        dl.stop()
+    conn.send(dl.stats().as_dict())
+
+
+def null_loop(
+    work_us: float, duration_s: float, *, cpu: int | None = None, fifo_priority: int | None = 80
+) -> dict[str, Any]:
+    """Misses of a loop that only spins ``work_us`` per 800 Hz tick, set up like the control
+    process (its own spawned process, SCHED_FIFO, mlockall, gc frozen): the machine's floor."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    params = {"cpu": cpu, "fifo_priority": fifo_priority}
+    proc = ctx.Process(
+        target=_null_loop_child, args=(work_us * 1e-6, duration_s, params, send), daemon=True
+    )
+    proc.start()
+    send.close()
+    st = recv.recv() if recv.poll(duration_s + 60.0) else None
+    proc.join(5.0)
+    if st is None:
+        return {"error": "the null loop did not report"}
+    ticks = int(st["ticks"]) + int(st["skipped"])
+    misses = int(st["misses"]) + int(st["skipped"])
+    return {
+        "work_us": round(work_us, 1),
+        "ticks": ticks,
+        "misses": misses,
+        "misses_per_10k": round(1e4 * misses / ticks, 2) if ticks else None,
+        "lateness_us_max": round(float(st["lateness_us_max"]), 1),
+        "sched_fifo": bool(st["sched_fifo"]),
+    }
+
+
 def main(
     scene: str,
     duration_s: float,
@@ -230,10 +308,18 @@ def main(
     *,
     with_perception: bool = False,
     emulator: str = "process",
+    isolate_cpu: bool = False,
+    baseline: bool = False,
 ) -> int:
     """CLI entry: print the result (one JSON object with ``as_json``)."""
     res = run_bench(
-        scene, duration_s, overrides, with_perception=with_perception, emulator=emulator
+        scene,
+        duration_s,
+        overrides,
+        with_perception=with_perception,
+        emulator=emulator,
+        isolate_cpu=isolate_cpu,
+        baseline=baseline,
     )
     if as_json:
         out.write(json.dumps(res) + "\n")

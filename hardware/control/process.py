@@ -57,7 +57,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..drives.faults import FAULT_METHODS
-from .deadline import DeadlineLoop
+from .deadline import DeadlineLoop, lock_memory
 
 __all__ = [
     "EMULATOR_MODES",
@@ -145,6 +145,8 @@ _LOG_FIELDS = (
     "inputs_us",
     "send_us",
     "publish_us",
+    "fusion_us",
+    "body_us",
 )
 _MAX_EVENTS_PER_SNAPSHOT = 8
 #: Ticks of fault-reset controlwords a reset request sends (the drives clear on its rising edge).
@@ -156,45 +158,6 @@ def _writable(fd: int) -> bool:
         return bool(select.select((), (fd,), (), 0.0)[1])
     except (OSError, ValueError):
         return False
-
-
-#: glibc ``mallopt`` parameters (malloc.h).
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_MAX = -4
-#: Heap grown, touched and released (kept) before locking, so that the loop's allocations, the
-#: solver's work space in a first contact included, come from pages already resident.
-_PREFAULT_HEAP_BYTES = 64 << 20
-
-
-def _lock_memory() -> tuple[bool, str]:
-    """Lock the process's memory the real-time Linux way; never raises.
-
-    ``mlockall(MCL_CURRENT | MCL_FUTURE)`` alone made every large ``malloc`` (glibc serves those
-    with a fresh ``mmap``) populate and lock its pages on the spot, and ``free`` give them back:
-    a controller tick that allocated its solver's work space in a first contact took 10 ms
-    (found by ``hapticloud run --hardware``). So first ``mallopt`` turns off ``mmap`` for malloc
-    and heap trimming, then a 64 MiB block is touched and freed, which leaves it in the heap,
-    resident; then ``mlockall``.
-    """
-    try:
-        import ctypes
-        import ctypes.util
-
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        tuned = libc.mallopt(_M_TRIM_THRESHOLD, -1) == 1 and libc.mallopt(_M_MMAP_MAX, 0) == 1
-        if tuned:
-            libc.malloc.restype = ctypes.c_void_p
-            libc.free.argtypes = (ctypes.c_void_p,)
-            block = libc.malloc(_PREFAULT_HEAP_BYTES)
-            if block:
-                ctypes.memset(block, 0, _PREFAULT_HEAP_BYTES)
-                libc.free(block)
-        if libc.mlockall(1 | 2) != 0:
-            return False, f"mlockall refused (errno {ctypes.get_errno()}); pages may fault"
-    except (OSError, AttributeError) as exc:
-        return False, f"mlockall unavailable ({exc})"
-    heap = "malloc without mmap or trimming, 64 MiB heap prefaulted; " if tuned else ""
-    return True, f"{heap}mlockall(MCL_CURRENT | MCL_FUTURE)"
 
 
 def _child_main(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: Any) -> None:
@@ -335,6 +298,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
     # Filled, not just zeroed: every page is touched now, not on the first write in the loop.
     log = {f: np.full(cap, 0.0) for f in _LOG_FIELDS}
     log_tau = np.full((cap, n), 0.0)
+    log_hip = np.full((cap, 3), 0.0)
     snap_every = int(params["snapshot_every"])
     out_fd = out_conn.fileno()
     dl = DeadlineLoop(period, spin_s=float(params["spin_s"]), fifo_priority=params["fifo_priority"])
@@ -363,7 +327,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 pinned = int(cpu)
             except (OSError, ValueError):
                 pinned = None
-        locked, lock_note = _lock_memory() if params.get("lock_memory", True) else (False, "off")
+        locked, lock_note = lock_memory() if params.get("lock_memory", True) else (False, "off")
         # Every path of the tick once, before the first deadline (the first solve allocates).
         hloop.warm_up(time.monotonic(), sim.q0, zeros)
         dl.start()
@@ -391,6 +355,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
         camera_last: dict[str, float] = {}
         fault_reset_ticks = 0
         reset_pending = False
+        estimates_waiting = False
         seq = 0
         dropped = 0
         events: list[tuple[int, float, str, str]] = []
@@ -492,8 +457,10 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                         # The parent is gone: stop (torque off on the way out).
                         running = False
                         events.append((i, t, "stop", "parent gone"))
-                elif take_estimates(t) and fusion is not None:
-                    fusion.prepare()
+                else:
+                    # Read and fused after this tick's command is out: a refit takes up to
+                    # ~0.4 ms, and an estimate 33 ms apart loses nothing by one tick.
+                    estimates_waiting = True
             if estop_flag[0]:
                 estop_flag[0] = False
                 machine.emergency_stop(t, "SIGINT")
@@ -576,16 +543,18 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             d_now = float(res.d_proj_m)
             if d_now < min_d and state is SessionState.ENABLED:
                 min_d = d_now
+            hip_now = robot.hip_position()
             state_block.write(
                 t,
                 i,
                 codes[state],
                 int(level),
-                robot.hip_position(),
+                hip_now,
                 robot.hip_velocity(),
                 fb.position_rad,
                 fb.velocity_rad_s,
             )
+            # Feedback in to command out (the stepped emulator's answer included): the tick.
             tick_us = (p4 - p0) * 1e6
             if tick_us > tick_max:
                 tick_max = tick_us
@@ -593,6 +562,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 log["t"][i] = t
                 log["k"][i] = k
                 log["lateness_us"][i] = (p0 - (dl.t0 + k * period)) * 1e6
+                log["tick_us"][i] = tick_us
                 log["control_us"][i] = (p2 - p1) * 1e6
                 log["emulator_us"][i] = (p4 - p3) * 1e6
                 log["state"][i] = codes[state]
@@ -607,6 +577,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 log["inputs_us"][i] = (p1 - p_poll) * 1e6
                 log["send_us"][i] = (p3 - p2) * 1e6
                 log_tau[i] = sent
+                log_hip[i] = hip_now
             if i % snap_every == 0:
                 # Session and watchdog changes since the last snapshot that got out.
                 trs = machine.log
@@ -644,7 +615,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                                 tuple(fb.position_rad.tolist()),
                                 tuple(fb.velocity_rad_s.tolist()),
                                 tuple(sent.tolist()),
-                                tuple(robot.hip_position().tolist()),
+                                tuple(hip_now.tolist()),
                                 _constraint_force(robot, sent),
                                 d_now,
                                 min_d,
@@ -666,12 +637,18 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                     tick_max = 0.0
                 else:
                     dropped += 1
+            p5 = time.perf_counter()
+            if estimates_waiting:
+                estimates_waiting = False
+                if take_estimates(t) and fusion is not None:
+                    fusion.prepare()
             if i < cap:
-                # The whole body, publishing included: what the deadline sees.
                 p_end = time.perf_counter()
-                log["publish_us"][i] = (p_end - p4) * 1e6
-                log["tick_us"][i] = (p_end - p0) * 1e6
-                log["master_us"][i] = (p_end - p0 - (p2 - p1) - (p4 - p3)) * 1e6
+                log["publish_us"][i] = (p5 - p4) * 1e6
+                log["fusion_us"][i] = (p_end - p5) * 1e6
+                # The whole body, publishing and fusion included: what the deadline sees.
+                log["body_us"][i] = (p_end - p0) * 1e6
+                log["master_us"][i] = (p4 - p0 - (p2 - p1) - (p4 - p3)) * 1e6
             i += 1
             dl.done()
     finally:
@@ -709,7 +686,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 "commands": events,
                 "snapshots_sent": seq,
                 "snapshots_dropped": dropped,
-                "log": {f: a[:m].copy() for f, a in log.items()} | {"tau_sent": log_tau[:m].copy()},
+                "log": {f: a[:m].copy() for f, a in log.items()}
+                | {"tau_sent": log_tau[:m].copy(), "hip_m": log_hip[:m].copy()},
                 "bus_schedule": _busy_per_cycle(cfg),
             },
         )

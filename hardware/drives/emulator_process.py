@@ -21,6 +21,7 @@ an :class:`EmulatorHandle` on the pipe end it was given.
 
 from __future__ import annotations
 
+import gc
 import multiprocessing as mp
 import socket
 import traceback
@@ -43,7 +44,7 @@ def _run(sock: socket.socket, conn: Any) -> None:
     from hapticloud.core.robot.model import RobotModel
     from hapticloud.core.threads import limit_blas_threads
 
-    from ..control.deadline import try_sched_fifo
+    from ..control.deadline import lock_memory, try_sched_fifo
     from .emulator import DriveEmulator, RigidArm
     from .faults import FAULT_METHODS
     from .transport import SocketPairBus
@@ -63,8 +64,14 @@ def _run(sock: socket.socket, conn: Any) -> None:
     )
     fifo = init.get("fifo_priority")
     sched = try_sched_fifo(fifo) if fifo is not None else (False, "not requested")
+    # Like the control process: no page faults, no collector pauses. A pause here holds the
+    # drives' answers back, and past feedback_lost_s the master turns the torque off.
+    _, lock_note = lock_memory()
+    gc.collect()
+    gc.freeze()
+    gc.disable()
     emu.start()
-    conn.send(("ready", {"sched_fifo": sched[0], "sched_note": sched[1]}))
+    conn.send(("ready", {"sched_fifo": sched[0], "sched_note": sched[1], "mlockall": lock_note}))
     try:
         while True:
             try:

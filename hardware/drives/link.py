@@ -27,7 +27,6 @@ import struct
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import can
@@ -110,52 +109,151 @@ class Emergency(NamedTuple):
     cycle: int
 
 
-@dataclass(frozen=True, eq=False)
+def _array(name: str, dtype: Any = np.float64) -> Any:
+    """A read-only array attribute of :class:`DriveFeedback` built from its raw tuple when first
+    read: the control loop reads a few of them per tick, observers the rest."""
+
+    def get(self: DriveFeedback) -> NDArray:
+        cache = self._cache
+        arr = cache.get(name)
+        if arr is None:
+            arr = cache[name] = _readonly(np.array(self._raw[name], dtype=dtype))
+        return arr
+
+    get.__name__ = name
+    return property(get)
+
+
 class DriveFeedback:
     """Immutable snapshot of the six drives, returned by :meth:`DriveLink.poll_feedback`.
 
     Arrays have shape (6,) in drive order and are read-only. ``cycle`` is the command cycle of
     the latest SYNC sent; ``fresh[i]`` says drive ``i``'s feedback for that SYNC has arrived
     (the values are otherwise those of its newest frame, ``age_s[i]`` old).
+
+    Attributes
+    ----------
+    seq
+        Snapshot sequence number (increments per snapshot).
+    stamp
+        Link clock time of the snapshot (s).
+    position_rad, velocity_rad_s, torque_nm, statusword, state, fresh
+        Per drive, from its newest feedback frame.
+    age_s
+        Time since the SYNC at which each drive's newest feedback was sampled (s; one cycle in
+        steady state, since the loop reads the answers to the previous SYNC); inf if none yet.
+    stale
+        Feedback older than ``feedback_timeout_s`` (or none at all).
+    command_missed
+        The drive's newest feedback says it did not get that cycle's command (it held the last).
+    heartbeat_age_s
+        Time since each drive's newest heartbeat (s); inf if none yet.
+    heartbeat_lost
+        No heartbeat for longer than ``heartbeat_timeout_s`` (counted from link start if none).
+    error_code
+        Latest EMCY error code per drive (0: none, or reset).
+    oldest_age_s, any_stale, any_heartbeat_lost, any_fault_bit, oldest_heartbeat_age_s
+        Summaries for the control loop, computed from the link's lists: the largest ``age_s``,
+        whether any drive is ``stale``, has lost its heartbeat or has the fault bit set, and the
+        largest ``heartbeat_age_s`` (a never-heard drive counting as old as the link).
+
+    The arrays other than position and velocity are built from raw tuples when first read.
     """
 
-    #: Snapshot sequence number (increments per snapshot).
+    __slots__ = (
+        "_cache",
+        "_counters",
+        "_raw",
+        "any_fault_bit",
+        "any_heartbeat_lost",
+        "any_stale",
+        "bus_off",
+        "cycle",
+        "nmt_state",
+        "oldest_age_s",
+        "oldest_heartbeat_age_s",
+        "position_rad",
+        "seq",
+        "stamp",
+        "state",
+        "velocity_rad_s",
+    )
+
     seq: int
-    #: Link clock time of the snapshot (s).
     stamp: float
     cycle: int
     position_rad: FloatArray
     velocity_rad_s: FloatArray
-    torque_nm: FloatArray
-    statusword: NDArray[np.uint16]
     state: tuple[DriveState, ...]
-    fresh: NDArray[np.bool_]
-    #: Time since the SYNC at which each drive's newest feedback was sampled (s; one cycle in
-    #: steady state, since the loop reads the answers to the previous SYNC); inf if none yet.
-    age_s: FloatArray
-    #: Feedback older than ``feedback_timeout_s`` (or none at all).
-    stale: NDArray[np.bool_]
-    #: The drive's newest feedback says it did not get that cycle's command (it held the last).
-    command_missed: NDArray[np.bool_]
     nmt_state: tuple[NmtState | None, ...]
-    #: Time since each drive's newest heartbeat (s); inf if none yet.
-    heartbeat_age_s: FloatArray
-    #: No heartbeat for longer than ``heartbeat_timeout_s`` (counted from link start if none).
-    heartbeat_lost: NDArray[np.bool_]
-    #: Latest EMCY error code per drive (0: none, or reset).
-    error_code: NDArray[np.uint16]
     bus_off: bool
-    counters: LinkCounters
-    torque_limit_nm: FloatArray = field(repr=False)
-    #: Summaries for the control loop, computed from the link's lists (cheaper than reductions
-    #: over the arrays above): the largest ``age_s``, whether any drive is ``stale``, has lost
-    #: its heartbeat, or has the fault bit set.
-    oldest_age_s: float = math.inf
-    any_stale: bool = True
-    any_heartbeat_lost: bool = False
-    any_fault_bit: bool = False
-    #: The largest ``heartbeat_age_s``, a never-heard drive counting as old as the link.
-    oldest_heartbeat_age_s: float = math.inf
+    oldest_age_s: float
+    any_stale: bool
+    any_heartbeat_lost: bool
+    any_fault_bit: bool
+    oldest_heartbeat_age_s: float
+
+    def __init__(
+        self,
+        *,
+        seq: int,
+        stamp: float,
+        cycle: int,
+        position_rad: Sequence[float],
+        velocity_rad_s: Sequence[float],
+        state: tuple[DriveState, ...],
+        nmt_state: tuple[NmtState | None, ...],
+        bus_off: bool,
+        counters: dict[str, Any],
+        raw: dict[str, tuple[Any, ...]],
+        oldest_age_s: float,
+        any_stale: bool,
+        any_heartbeat_lost: bool,
+        any_fault_bit: bool,
+        oldest_heartbeat_age_s: float,
+    ) -> None:
+        init = object.__setattr__
+        init(self, "seq", seq)
+        init(self, "stamp", stamp)
+        init(self, "cycle", cycle)
+        init(self, "position_rad", _readonly(np.array(position_rad)))
+        init(self, "velocity_rad_s", _readonly(np.array(velocity_rad_s)))
+        init(self, "state", state)
+        init(self, "nmt_state", nmt_state)
+        init(self, "bus_off", bus_off)
+        init(self, "_counters", counters)
+        init(self, "_raw", raw)
+        init(self, "_cache", {})
+        init(self, "oldest_age_s", oldest_age_s)
+        init(self, "any_stale", any_stale)
+        init(self, "any_heartbeat_lost", any_heartbeat_lost)
+        init(self, "any_fault_bit", any_fault_bit)
+        init(self, "oldest_heartbeat_age_s", oldest_heartbeat_age_s)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"DriveFeedback is immutable (cannot set {name!r})")
+
+    def __repr__(self) -> str:
+        return (
+            f"DriveFeedback(seq={self.seq}, stamp={self.stamp:.6f}, cycle={self.cycle}, "
+            f"complete={self.complete}, any_fault={self.any_fault_bit}, bus_off={self.bus_off})"
+        )
+
+    torque_nm = _array("torque_nm")
+    statusword = _array("statusword", np.uint16)
+    fresh = _array("fresh", np.bool_)
+    age_s = _array("age_s")
+    stale = _array("stale", np.bool_)
+    command_missed = _array("command_missed", np.bool_)
+    heartbeat_age_s = _array("heartbeat_age_s")
+    heartbeat_lost = _array("heartbeat_lost", np.bool_)
+    error_code = _array("error_code", np.uint16)
+    torque_limit_nm = _array("torque_limit_nm")
+
+    @property
+    def counters(self) -> LinkCounters:
+        """The link's running totals at this snapshot."""
+        return LinkCounters(**self._counters)
 
     def bus_load_since(self, earlier: DriveFeedback) -> float:
         """Observed bus load between ``earlier`` and this snapshot (fraction of the time the
@@ -164,7 +262,7 @@ class DriveFeedback:
         dt = self.stamp - earlier.stamp
         if not dt > 0.0:
             return 0.0
-        return (self.counters.bus_time_s - earlier.counters.bus_time_s) / dt
+        return (self._counters["bus_time_s"] - earlier._counters["bus_time_s"]) / dt
 
     @property
     def missing(self) -> tuple[int, ...]:
@@ -174,7 +272,7 @@ class DriveFeedback:
     @property
     def complete(self) -> bool:
         """All six drives answered the latest SYNC."""
-        return bool(self.fresh.all())
+        return all(self._raw["fresh"])
 
     @property
     def faulted(self) -> NDArray[np.bool_]:
@@ -272,6 +370,7 @@ class DriveLink:
         self._hb_lost = [False] * n
         self._err = [0] * n
         self._cw_sent = [0] * n
+        self._cw_cache: dict[tuple[Any, ...], tuple[int, ...]] = {}
 
         self._cycle = 0  # cycle of the latest command sent
         self._command_pending = False  # a command was sent since the last SYNC
@@ -409,10 +508,19 @@ class DriveLink:
         targets = (target,) * self._n if isinstance(target, DriveTarget) else tuple(target)
         if len(targets) != self._n:
             raise InputError(f"target: expected 1 or {self._n} targets, got {len(targets)}")
-        return tuple(
-            p.controlword_towards(self._state[i], targets[i], self._cw_sent[i])
-            for i in range(self._n)
-        )
+        # The words depend only on (targets, states, last words): in steady state the same key
+        # every tick, so the answer is looked up instead of recomputed.
+        key = (targets, tuple(self._state), tuple(self._cw_sent))
+        words = self._cw_cache.get(key)
+        if words is None:
+            words = tuple(
+                p.controlword_towards(self._state[i], targets[i], self._cw_sent[i])
+                for i in range(self._n)
+            )
+            if len(self._cw_cache) >= 256:
+                self._cw_cache.clear()
+            self._cw_cache[key] = words
+        return words
 
     def send_command(
         self,
@@ -631,48 +739,48 @@ class DriveLink:
     def snapshot(self) -> DriveFeedback:
         """The current state as an immutable :class:`DriveFeedback` (no frames are read)."""
         now = self._clock()
-        n = self._n
-        age_list = [now - t for t in self._sample_time]
-        oldest = max(age_list)
-        age = np.array(age_list)
-        hb_list = [now - t for t in self._hb_time]
-        hb_age = np.array(hb_list)
         cfg = self._cfg
-        hb_ref = np.where(np.isfinite(hb_age), hb_age, now - self._start)
+        age = tuple([now - t for t in self._sample_time])
+        oldest = max(age)
+        timeout = cfg.feedback_timeout_s
+        hb_age = tuple([now - t for t in self._hb_time])
+        since_start = now - self._start
+        hb_timeout = cfg.heartbeat_timeout_s
         # Never heard: as old as the link.
-        oldest_hb = min(max(hb_list), now - self._start)
-        hb_lost = hb_ref > cfg.heartbeat_timeout_s
-        for i in range(n):
-            lost = bool(hb_lost[i])
-            if lost != self._hb_lost[i]:
-                self._hb_lost[i] = lost
-                self._event(i, "heartbeat_lost" if lost else "heartbeat_back")
+        hb_lost = tuple([(a if a != math.inf else since_start) > hb_timeout for a in hb_age])
+        if hb_lost != tuple(self._hb_lost):
+            for i, lost in enumerate(hb_lost):
+                if lost != self._hb_lost[i]:
+                    self._hb_lost[i] = lost
+                    self._event(i, "heartbeat_lost" if lost else "heartbeat_back")
         self._seq += 1
         return DriveFeedback(
             seq=self._seq,
             stamp=now,
             cycle=max(self._sync_cycle, 0),
-            position_rad=_readonly(np.array(self._pos)),
-            velocity_rad_s=_readonly(np.array(self._vel)),
-            torque_nm=_readonly(np.array(self._tau)),
-            statusword=_readonly(np.array(self._sw, dtype=np.uint16)),
+            position_rad=self._pos,
+            velocity_rad_s=self._vel,
             state=tuple(self._state),
-            fresh=_readonly(np.array(self._fresh)),
-            age_s=_readonly(age),
-            stale=_readonly(age > cfg.feedback_timeout_s),
-            command_missed=_readonly(np.array(self._cmd_missed)),
             nmt_state=tuple(self._nmt),
-            heartbeat_age_s=_readonly(hb_age),
-            heartbeat_lost=_readonly(hb_lost),
-            error_code=_readonly(np.array(self._err, dtype=np.uint16)),
             bus_off=self._bus_off,
-            counters=LinkCounters(**self._c),
-            torque_limit_nm=_readonly(np.array(self._limit)),
+            counters=dict(self._c),
+            raw={
+                "torque_nm": tuple(self._tau),
+                "statusword": tuple(self._sw),
+                "fresh": tuple(self._fresh),
+                "age_s": age,
+                "stale": tuple([a > timeout for a in age]),
+                "command_missed": tuple(self._cmd_missed),
+                "heartbeat_age_s": hb_age,
+                "heartbeat_lost": hb_lost,
+                "error_code": tuple(self._err),
+                "torque_limit_nm": tuple(self._limit),
+            },
             oldest_age_s=oldest,
-            any_stale=oldest > cfg.feedback_timeout_s,
-            any_heartbeat_lost=any(self._hb_lost),
-            oldest_heartbeat_age_s=oldest_hb,
+            any_stale=oldest > timeout,
+            any_heartbeat_lost=any(hb_lost),
             any_fault_bit=any(sw & _FAULT_BIT for sw in self._sw),
+            oldest_heartbeat_age_s=min(max(hb_age), since_start),
         )
 
     def pop_events(self) -> list[LinkEvent]:

@@ -522,6 +522,7 @@ def _report(
             "skipped": deadline.get("skipped"),
             "tick_us": _pcts(log["tick_us"]),
             "tick_us_enabled": _pcts(log["tick_us"][enabled]),
+            "body_us": _pcts(log["body_us"]),
             "lateness_us": _pcts(log["lateness_us"]),
             "deadline": {k: v for k, v in deadline.items() if not isinstance(v, str)},
             "link_counters": dict(result["link_counters"]),
