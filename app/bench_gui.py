@@ -16,7 +16,9 @@ event-loop turn (Qt composites the GL widget's frame into the window and flushes
 Updates per second are counted in 1 s windows of wall time after a short warm-up; the median
 window is reported.
 
-The control process (the demo scene, 800 Hz, six emulated drives in their own process, idle in
+The view is measured alone first, then again while the control process runs on the same cores
+(``with_control_*``). The control process (the demo scene, 800 Hz, six emulated drives in their
+own process, as the app runs it: :data:`~hapticloud.app.session.APP_PROCESS_KWARGS`; idle in
 READY: drive bus I/O and the tick run, no torque) is measured twice in the same run for the same
 duration: alone (no GUI), then while the view is updated at full speed. Both report deadline
 misses per 10,000 ticks (:class:`~hapticloud.hardware.control.DeadlineLoop`'s statistics).
@@ -271,9 +273,10 @@ def measure(duration_s: float) -> dict[str, float | int]:
 
 def _control(duration_s: float, during: Any = None) -> dict[str, Any]:
     """Run the demo's control process for ``duration_s`` (or while ``during()`` runs)."""
+    from hapticloud.app.session import APP_PROCESS_KWARGS
     from hapticloud.hardware.control import ControlProcess
 
-    cp = ControlProcess("demo", emulator="process")
+    cp = ControlProcess("demo", emulator="process", **APP_PROCESS_KWARGS)
     cp.start()
     try:
         out = during() if during is not None else time.sleep(duration_s)
@@ -296,10 +299,15 @@ def _run_app(duration_s: float, control: bool = True) -> dict[str, Any]:
     created = QtWidgets.QApplication.instance() is None
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     try:
+        # The view alone first (the issue's figure), then again while the control process runs
+        # on the same cores (what a session costs the view, and the loop's misses with a GUI).
+        result = measure(duration_s)
         if not control:
-            return measure(duration_s)
+            return result
         run = _control(duration_s, lambda: measure(duration_s))
-        result = dict(run.pop("during"))
+        during = run.pop("during")
+        for key in ("updates_per_s", "render_ms_median", "frame_to_screen_ms_median"):
+            result[f"with_control_{key}"] = during[key]
         result.update({f"control_gui_{k}": v for k, v in run.items()})
         return result
     finally:
@@ -338,6 +346,9 @@ def main(duration_s: float, as_json: bool, out: TextIO) -> int:
             f"{result['frame_to_flush_ms_p90']} ms p90 (to the end of the event-loop turn that "
             "painted: Qt's compositing of the GL widget and the flush to X included)\n"
             f"  actors added during updates: {result['actors_added']}\n"
+            f"  with the control process running too: {result['with_control_updates_per_s']} "
+            f"updates/s, render {result['with_control_render_ms_median']} ms median, "
+            f"frame-to-screen {result['with_control_frame_to_screen_ms_median']} ms median\n"
             f"control process (demo, 800 Hz, 6 emulated drives in their own process), "
             f"{duration_s:g} s each:\n"
             f"  no GUI:        {result['control_alone_misses_per_10k']} misses per 10k ticks "

@@ -260,7 +260,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
         emu_proc.init(
             {
                 "bus": cfg,
-                "emulator": EmulatorConfig(),
+                "emulator": EmulatorConfig(model_bus_timing=bool(params["bus_timing"])),
                 "urdf": loaded.config.robot.urdf or None,
                 "q0": sim.q0,
                 "fifo_priority": (
@@ -774,6 +774,10 @@ class ControlProcess:
     dynamics
         ``None`` (rigid arm) or a picklable callable ``model -> ArmDynamics`` for the emulated
         arm (e.g. one with a simulated patient pushing the handle).
+    bus_timing
+        With ``emulator="process"``: the drives release each answer at its modelled end of frame
+        on the bus (about 8 wake-ups per cycle, a quarter of a core here) or, ``False``, all at
+        once right after the SYNC (one wake-up; what the app uses to leave the CPU to the view).
     """
 
     def __init__(
@@ -792,6 +796,7 @@ class ControlProcess:
         watchdogs: Mapping[str, Any] | None = None,
         damping_nms: float = 2.0,
         dynamics: Any = None,
+        bus_timing: bool = True,
     ) -> None:
         if emulator not in EMULATOR_MODES:
             raise ValueError(
@@ -817,6 +822,7 @@ class ControlProcess:
             "watchdogs": dict(watchdogs) if watchdogs else None,
             "damping_nms": float(damping_nms),
             "dynamics": dynamics,
+            "bus_timing": bool(bus_timing),
         }
         self._ctx = mp.get_context("spawn")
         self._proc: Any = None
