@@ -113,6 +113,9 @@ class Session:
         The emulated arm's dynamics factory; ``"auto"``: :func:`default_dynamics`.
     emulator
         Where the six emulated drives run (``"process"``: their own process).
+    enable_when_ready
+        Enable once, the first time the session reports READY (``hapticloud app --enable``: the
+        user asked for torque on the command line).
     process_kwargs
         More :class:`ControlProcess` arguments; by default :data:`APP_PROCESS_KWARGS`.
     """
@@ -123,12 +126,14 @@ class Session:
         *,
         dynamics: Any = "auto",
         emulator: str = "process",
+        enable_when_ready: bool = False,
         **process_kwargs: Any,
     ) -> None:
         self.scene = CONTROL_SCENES.get(scene, scene)
         self._dynamics = default_dynamics(self.scene) if dynamics == "auto" else dynamics
         self._emulator = emulator
         self._kwargs = {**APP_PROCESS_KWARGS, **process_kwargs}
+        self._enable_when_ready = enable_when_ready
         self._cp: Any = None
         self._phase = SessionPhase.STARTING
         self._message = ""
@@ -244,6 +249,9 @@ class Session:
                 self._phase = SessionPhase.FAILED
                 self.alarms.appendleft(Alarm(time.monotonic(), "app", self._message))
             return None
+        if self._enable_when_ready and snaps[-1].state == "ready":
+            self._enable_when_ready = False
+            self.enable()
         rows = np.empty((len(snaps), len(CONTROL_COLUMNS)))
         for k, s in enumerate(snaps):
             if self.latest is not None and s.seq > self.latest.seq + 1:

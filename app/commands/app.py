@@ -86,6 +86,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="perception only: do not start the 800 Hz control process with its emulated drives",
     )
+    parser.add_argument(
+        "--enable",
+        action="store_true",
+        help="enable the session (torque on) as soon as it is ready, as the Enable button does",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -144,7 +149,9 @@ def _run_window(
         lambda cfg, session=None: LiveSource(settings, cfg, session=session),  # type: ignore[arg-type]
         config,  # type: ignore[arg-type]
         title=scene,
-        make_session=None if args.no_session else (lambda: Session(scene)),
+        make_session=(
+            None if args.no_session else (lambda: Session(scene, enable_when_ready=args.enable))
+        ),
     )
     window.controls.color_mode.setCurrentText(args.color_by)
     window.controls.preset_actions[args.view].trigger()
