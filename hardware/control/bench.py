@@ -87,13 +87,18 @@ class _Perception:
                     continue
                 est = pipe.process_depth(frame, self.hip)
                 self.processed[i] += 1
-                if self._control is not None:
-                    with self._send_lock:
+                with self._send_lock:
+                    if self._control is not None:
                         self._control.send_estimate(dataclasses.replace(est, t=time.monotonic()))
             except Exception as exc:
                 self.errors.append(repr(exc))
                 if len(self.errors) > 10:
                     return
+
+    def detach(self) -> None:
+        """Stop sending estimates to the control process (it is about to stop)."""
+        with self._send_lock:
+            self._control = None
 
     def close(self) -> dict[str, Any]:
         self._stop.set()
@@ -158,6 +163,8 @@ def run_bench(
         while time.monotonic() < end:
             time.sleep(0.05)
             n_snaps += len(cp.snapshots())
+        if perception is not None:
+            perception.detach()  # perception goes on (the load), its estimates go nowhere
         res = cp.stop(timeout=30.0)
         floor = None
         if baseline and res is not None:
