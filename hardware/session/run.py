@@ -14,12 +14,10 @@ What runs where:
   :class:`~hapticloud.hardware.control.shared_state.RobotStateBlock`), runs its pipeline for that
   HIP and sends the estimate (capture time on :func:`time.monotonic`) straight down the control
   process's estimates pipe, no earlier than the camera's ``latency_s`` after capture; the loop
-  fuses the estimates at 800 Hz. An estimate the fusion would not admit (invalid: nothing near
-  the HIP; low quality) goes as a bare camera frame
-  (:func:`~hapticloud.hardware.control.process.send_camera_frame`): the camera watchdog sees the
-  camera alive, and the estimate watchdog, which ages with admitted estimates only, is not armed
-  by frames that carry nothing to fuse. Frames the renderer could not keep up with are dropped
-  and counted (``estimates.skipped_frames``);
+  fuses the estimates at 800 Hz. Every estimate goes, an invalid one too ("nothing near the
+  HIP" is fresh news for the estimate watchdog; the loop's fusion admits only what it should).
+  Frames the renderer could not keep up with are dropped and counted
+  (``estimates.skipped_frames``);
 - **this process**: enables the session, drains the loop's snapshots and samples the robot's HIP
   from the same block (every ~1 ms) for the ground truth: the true margin of the HIP sphere to
   the scene's bodies and walls
@@ -130,7 +128,7 @@ def _perception(
     from hapticloud.core.sim.closed_loop import ClosedLoopSim
     from hapticloud.core.threads import limit_blas_threads
 
-    from ..control.process import send_camera_frame, send_estimate
+    from ..control.process import send_estimate
     from ..control.shared_state import RobotStateBlock
 
     limit_blas_threads(1)
@@ -162,10 +160,7 @@ def _perception(
                 keep = []
                 for item in pending:
                     if item[0] <= now:
-                        if item[2] is not None:
-                            send_estimate(est_conn, item[2])
-                        else:
-                            send_camera_frame(est_conn, item[3], item[1])
+                        send_estimate(est_conn, item[2])
                         delivery_ms.append((time.monotonic() - item[1]) * 1e3)
                     else:
                         keep.append(item)
@@ -188,7 +183,7 @@ def _perception(
                 valid[name] += bool(est.valid)
                 ok = admit(est, cam.spec.min_quality, cam.spec.fuse_fallbacks)
                 admitted[name] += ok
-                pending.append((st.t + cam.spec.latency_s, st.t, est if ok else None, name))
+                pending.append((st.t + cam.spec.latency_s, st.t, est, name))
             # The next frame on the camera's grid; frames the renderer could not keep up with
             # are dropped, as a camera's driver drops them.
             step = 1.0 / cam.spec.rate_hz
