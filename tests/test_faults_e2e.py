@@ -296,7 +296,7 @@ def _skip_if_stalled(run: Run, i0: int, i1: int, *, late_share: float = 0.1) -> 
     fault under test: skip, with the evidence from the log."""
     log = run.log
     j0 = max(i0, 1)
-    t, work = log["t"], log["tick_us"] * 1e-6
+    t, work = log["t"], log["body_us"] * 1e-6
     stall = (t[j0:i1] - t[j0 - 1 : i1 - 1]) + work[j0:i1]  # previous tick start -> this one's end
     if stall.size and stall.max() > DEFAULT_WD.feedback_lost_s:
         pytest.skip(
