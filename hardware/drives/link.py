@@ -233,6 +233,14 @@ class DriveFeedback:
     def __setattr__(self, name: str, value: Any) -> None:
         raise AttributeError(f"DriveFeedback is immutable (cannot set {name!r})")
 
+    def __getstate__(self) -> dict[str, Any]:
+        return {name: getattr(self, name) for name in self.__slots__ if name != "_cache"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        for name, value in state.items():
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "_cache", {})
+
     def __repr__(self) -> str:
         return (
             f"DriveFeedback(seq={self.seq}, stamp={self.stamp:.6f}, cycle={self.cycle}, "
