@@ -470,18 +470,6 @@ class ClosedLoopSim:
         patient = self.patient
         n_joints = self.robot.n_joints
 
-        def forces(
-            t: float,
-            hip: FloatArray,
-            hip_vel: FloatArray,
-            q: FloatArray,
-            qd: FloatArray,
-            J: FloatArray,
-            inertia: FloatArray,
-        ) -> tuple[FloatArray, FloatArray]:
-            assert patient is not None
-            return patient.hand_force(t, hip, hip_vel), patient.posture_torque(q, qd, J, inertia)
-
         state = self.plant.state()
         wall_start = time.perf_counter()
         for k in range(n_ticks):
@@ -580,7 +568,7 @@ class ClosedLoopSim:
                 a["fused_age"][k] = -1.0
 
             # 4. the plant advances one period with the torques held.
-            state = self.plant.step(res.tau, forces if patient is not None else None)
+            state = self.plant.step(res.tau, patient.forces if patient is not None else None)
             timing["plant"] += time.perf_counter() - t3
             if progress is not None and k % 800 == 0:
                 progress(t)

@@ -166,6 +166,21 @@ class PatientArm:
             intent.velocity(t) - hip_velocity
         )
 
+    def forces(
+        self,
+        t: float,
+        hip: FloatArray,
+        hip_velocity: FloatArray,
+        q: FloatArray,
+        qd: FloatArray,
+        jacobian: FloatArray,
+        inertia: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """What the arm does to the exoskeleton at ``t``: the hand force (N, world) and the
+        posture torque (N m); the signature of :meth:`~hapticloud.core.sim.exo.ExoPlant.step`'s
+        force callback."""
+        return self.hand_force(t, hip, hip_velocity), self.posture_torque(q, qd, jacobian, inertia)
+
     def posture_torque(
         self, q: FloatArray, qd: FloatArray, jacobian: FloatArray, inertia: FloatArray
     ) -> FloatArray:

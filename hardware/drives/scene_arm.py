@@ -70,20 +70,6 @@ class SceneArm:
         """What the handle's force sensor would read after the last call (N, world)."""
         return self.plant.state().hand_force
 
-    def _forces(
-        self,
-        t: float,
-        hip: FloatArray,
-        hip_vel: FloatArray,
-        q: FloatArray,
-        qd: FloatArray,
-        J: FloatArray,
-        inertia: FloatArray,
-    ) -> tuple[FloatArray, FloatArray]:
-        # As ClosedLoopSim.run's force model: muscle force at the hand, posture torque.
-        patient = self.patient
-        return patient.hand_force(t, hip, hip_vel), patient.posture_torque(q, qd, J, inertia)
-
     def __call__(
         self, q: FloatArray, qd: FloatArray, tau: FloatArray, dt: float
     ) -> tuple[FloatArray, FloatArray]:
@@ -91,7 +77,7 @@ class SceneArm:
         plant.q = np.array(q, dtype=np.float64)
         plant.qd = np.array(qd, dtype=np.float64)
         plant.dt = float(dt)
-        state = plant.step(np.array(tau, dtype=np.float64), self._forces)
+        state = plant.step(np.array(tau, dtype=np.float64), self.patient.forces)
         self.calls += 1
         return state.q, state.qd
 
