@@ -46,6 +46,7 @@ from typing import Any, Protocol
 
 import numpy as np
 from hapticloud.core.config import StageConfig, nested
+from hapticloud.core.control import ControllerConfig
 from hapticloud.core.errors import ConfigError
 from hapticloud.core.fusion import FusedSurface, FusionConfig, SurfaceFusion
 from hapticloud.core.geometry.primitives import Box, Capsule, Primitive, Sphere
@@ -97,13 +98,15 @@ class LiveConfig(StageConfig):
 
     ``perception`` applies to every camera's pipeline; ``fusion`` to the shared fusion (a fusion
     change restarts the fusion's window: :class:`SurfaceFusion` has no in-place reconfiguration)
-    and to the control process's fusion; ``haptics`` to the control process's haptic tick (the
-    worker ignores it).
+    and to the control process's fusion; ``haptics`` to the control process's haptic tick and
+    ``controller`` to its hierarchical controller (only while the session is not enabled); the
+    worker ignores both.
     """
 
     perception: PerceptionConfig = nested(PerceptionConfig)
     fusion: FusionConfig = nested(FusionConfig)
     haptics: HapticsConfig = nested(HapticsConfig)
+    controller: ControllerConfig = nested(ControllerConfig)
 
 
 class SourceState(enum.Enum):

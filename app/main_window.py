@@ -389,8 +389,10 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         haptics = config.haptics if config.haptics != old.haptics else None
         fusion = config.fusion if config.fusion != old.fusion else None
-        if (haptics is not None or fusion is not None) and session.can_configure:
-            session.configure(haptics=haptics, fusion=fusion)
+        controller = config.controller if config.controller != old.controller else None
+        changed = haptics is not None or fusion is not None or controller is not None
+        if changed and session.can_configure:
+            session.configure(haptics=haptics, fusion=fusion, controller=controller)
 
     def _show_refusal(self, reason: str) -> None:
         self.statusBar().showMessage(f"Refused: {reason}", 8000)

@@ -52,6 +52,15 @@ SECTION_TITLES: Mapping[str, str] = {
     "haptics.positional": "positional constraint (eqs. 9-11)",
     "haptics.velocity": "velocity constraint (eqs. 12-14)",
     "haptics.force": "force constraint (ISO/TS 15066)",
+    "controller": "Controller",
+    "controller.": "hierarchy",
+    "controller.equation_of_motion": "1 · equation of motion",
+    "controller.position_limit": "2 · joint position limits",
+    "controller.velocity_limit": "2 · joint velocity limits",
+    "controller.torque_limit": "torque limits",
+    "controller.walls": "3 · fixed walls",
+    "controller.min_acceleration": "5 · minimal acceleration",
+    "controller.solver": "solver (DAQP)",
 }
 #: Leaves that open a new section inside a flat table (``FusionConfig`` has no sub-tables).
 SECTION_BREAKS: Mapping[str, str] = {"fusion.feedforward": "PID follower"}
@@ -196,6 +205,16 @@ def _decimals(info: ParamInfo) -> int:
     text = repr(float(default))
     exact = len(text.split(".")[1].rstrip("0")) if "." in text and "e" not in text else 0
     return max(0, min(8, max(significant, exact)))
+
+
+class ScientificEditor(TextEditor):
+    """A float too small for a spin box's decimals, typed in scientific notation (``1e-9``)."""
+
+    def value(self) -> Any:
+        try:
+            return float(self.line.text())
+        except ValueError:
+            return self.line.text()
 
 
 @dataclass(frozen=True)
@@ -377,6 +396,9 @@ def make_editor(info: ParamInfo, parent: QtWidgets.QWidget | None = None) -> Edi
         return BoolEditor(info, parent)
     if info.choices:
         return ChoiceEditor(info, parent)
+    if info.kind is float and isinstance(info.default, float) and 0 < abs(info.default) < 1e-6:
+        # A spin box shows at most 8 decimals: a solver tolerance of 1e-9 would read 0.
+        return ScientificEditor(info, parent)
     if info.kind in (int, float) and isinstance(info.default, int | float):
         return NumberEditor(info, parent)
     return TextEditor(info, parent)

@@ -314,13 +314,14 @@ class Session:
 
         return callable(getattr(ControlProcess, "configure", None))
 
-    def configure(self, *, haptics: Any = None, fusion: Any = None) -> bool:
-        """Send new haptics and/or fusion parameters to the loop (False: not applied)."""
+    def configure(self, *, haptics: Any = None, fusion: Any = None, controller: Any = None) -> bool:
+        """Send new haptics, fusion and/or controller parameters to the loop (False: not sent;
+        a controller change while enabled is refused by the loop, shown in the alarms)."""
         cp = self.process
         if cp is None or not callable(getattr(cp, "configure", None)):
             return False
         try:
-            cp.configure(haptics=haptics, fusion=fusion)
+            cp.configure(haptics=haptics, fusion=fusion, controller=controller)
         except (OSError, RuntimeError, ValueError, TypeError) as err:
             self.alarms.appendleft(Alarm(time.monotonic(), "app", f"configure refused: {err}"))
             return False

@@ -12,6 +12,7 @@ from hapticloud.app.param_panel import (
     NumberEditor,
     ParamPanel,
     RangeEditor,
+    ScientificEditor,
     pretty_name,
     slider_span,
 )
@@ -40,6 +41,10 @@ def test_every_parameter_has_a_widget_of_its_kind(panel: ParamPanel) -> None:
             assert [editor.combo.itemText(i) for i in range(editor.combo.count())] == list(
                 info.choices
             )
+        elif info.kind is float and 0 < abs(info.default) < 1e-6:
+            # Solver tolerances: typed, shown exactly (a spin box would read 0).
+            assert isinstance(editor, ScientificEditor)
+            assert editor.value() == info.default
         else:
             assert isinstance(editor, NumberEditor)
             if info.unit:
@@ -47,7 +52,7 @@ def test_every_parameter_has_a_widget_of_its_kind(panel: ParamPanel) -> None:
         assert info.doc in editor.toolTip()
     # Both tables are there, as tabs.
     tabs = [panel.tabs.tabText(i) for i in range(panel.tabs.count())]
-    assert tabs == ["Perception", "Fusion / PID", "Haptics"]
+    assert tabs == ["Perception", "Fusion / PID", "Haptics", "Controller"]
 
 
 def test_widgets_show_the_defaults(panel: ParamPanel) -> None:

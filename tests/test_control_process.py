@@ -74,8 +74,10 @@ def test_try_sched_fifo_never_raises():
 # ----- the process -------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def run():
-    """One process run: ~0.3 s ready, enable, ~0.3 s enabled, drive 2 faults, stop."""
-    cp = ControlProcess("impacts", fifo_priority=None)
+    """One process run: ~0.3 s ready, enable, ~0.3 s enabled, drive 2 faults, stop. The loop and
+    the drives' process ask for SCHED_FIFO, as in a session, so that other load does not stall
+    them (the normal scheduler when refused)."""
+    cp = ControlProcess("impacts", fifo_priority=60)
     info = cp.start(timeout=60.0)
     pid = cp.pid
     try:
@@ -142,3 +144,30 @@ def test_drive_fault_turns_torque_off_within_four_ticks(run):
     assert any(tr[2] == "fault" and "drive_fault" in tr[3] for tr in res["transitions"])
     seen = np.flatnonzero(log["any_fault"][injected:] > 0)
     assert seen.size and seen[0] <= off[0]
+
+
+def test_controller_change_applies_when_not_enabled_and_is_refused_when_enabled():
+    from hapticloud.core.control import ControllerConfig
+
+    cp = ControlProcess("impacts", fifo_priority=None, emulator="stepped")
+    cp.start(timeout=60.0)
+    try:
+        time.sleep(0.2)
+        cfg = ControllerConfig().replace_path("min_acceleration.damping_1_per_s", 5.0)
+        cp.configure(controller=cfg)  # READY: applied
+        time.sleep(0.1)
+        cp.enable("test")
+        time.sleep(0.1)
+        cp.configure(controller=ControllerConfig())  # ENABLED: refused
+        time.sleep(0.1)
+        with pytest.raises(TypeError):
+            cp.configure(controller="not a config")
+    finally:
+        res = cp.stop(timeout=20.0)
+    # Snapshots received up to the end (stop() drains the pipe).
+    events = [e for s in cp.snapshots() for e in s.events if e[1] == "config"]
+    assert [e[2] for e in events] == [
+        "controller applied",
+        "controller change refused: disable the session first",
+    ]
+    assert res is not None and (res["log"]["state"] == ENABLED).any()

@@ -95,7 +95,7 @@ class ControlSnapshot(NamedTuple):
     the HIP: the Cartesian force whose ``J^T f`` is the torque beyond transparency
     (``tau_sent - h``), least squares. ``events`` are the session transitions and watchdog
     reaction changes since the previous snapshot that got out: ``(t, kind, text)`` with kind
-    ``"state"`` or ``"reaction"``.
+    ``"state"``, ``"reaction"`` or ``"config"``.
     """
 
     seq: int
@@ -206,7 +206,7 @@ def estimate_from_wire(wire: tuple[Any, ...]) -> Any:
 def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: Any) -> None:
     import can
     from hapticloud.core.fusion import SurfaceFusion
-    from hapticloud.core.loop import admit
+    from hapticloud.core.loop import admit, build_controller
     from hapticloud.core.robot.model import RobotModel
     from hapticloud.core.scene import load_scene
     from hapticloud.core.sim.closed_loop import ClosedLoopSim
@@ -396,6 +396,18 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 reset_pending = True
             elif name == "configure":
                 haptics_cfg, fusion_cfg = cmd[1], cmd[2]
+                controller_cfg = cmd[3] if len(cmd) > 3 else None
+                if controller_cfg is not None:
+                    if machine.state is SessionState.ENABLED:
+                        pending_events.append(
+                            (t, "config", "controller change refused: disable the session first")
+                        )
+                    else:
+                        # A new hierarchy, warmed up at once: this tick overruns (counted), with
+                        # no torque flowing.
+                        hloop.controller = build_controller(robot, controller_cfg, sim.walls)
+                        hloop.warm_up(t, fb.position_rad, fb.velocity_rad_s)
+                        pending_events.append((t, "config", "controller applied"))
                 if haptics_cfg is not None:
                     hloop.configure(haptics_cfg)
                 if fusion_cfg is not None and fusion is not None:
@@ -991,18 +1003,25 @@ class ControlProcess:
         """Clear a FAULT or EMERGENCY_STOP (refused while a torque-off cause is still active)."""
         self._send("reset")
 
-    def configure(self, *, haptics: Any = None, fusion: Any = None) -> None:
+    def configure(self, *, haptics: Any = None, fusion: Any = None, controller: Any = None) -> None:
         """New :class:`~hapticloud.core.loop.HapticsConfig` and/or
         :class:`~hapticloud.core.fusion.FusionConfig` for the loop, applied at its next tick
-        (validated configs only: they validate on construction)."""
+        (validated configs only: they validate on construction); a new
+        :class:`~hapticloud.core.control.ControllerConfig` only while the session is not
+        ENABLED (rebuilding the hierarchy costs a few ms; refused otherwise, with an event)."""
+        from hapticloud.core.control import ControllerConfig
         from hapticloud.core.fusion import FusionConfig
         from hapticloud.core.loop import HapticsConfig
 
+        if controller is not None and not isinstance(controller, ControllerConfig):
+            raise TypeError(
+                f"controller: expected ControllerConfig, got {type(controller).__name__}"
+            )
         if haptics is not None and not isinstance(haptics, HapticsConfig):
             raise TypeError(f"haptics: expected HapticsConfig, got {type(haptics).__name__}")
         if fusion is not None and not isinstance(fusion, FusionConfig):
             raise TypeError(f"fusion: expected FusionConfig, got {type(fusion).__name__}")
-        self._send("configure", haptics, fusion)
+        self._send("configure", haptics, fusion, controller)
 
     def inject_fault(self, method: str, *args: Any, **kwargs: Any) -> None:
         """Call ``method`` of the drive emulator's :class:`~..drives.FaultInjector` (one of
