@@ -103,13 +103,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         record = study.run_scene(scene, None, args.duration)
     except InfeasibleSceneError as err:
-        # Reported, not crashed: the report says why, the exit code says bad input.
-        if args.report:
-            _write_json(
-                args.report, {"scene": {"path": scene.path}, "feasible": False, "reason": str(err)}
-            )
-        print(f"hapticloud: error: scene is infeasible: {err}", file=sys.stderr)
-        return 2
+        return _infeasible(args, scene, err)
     rep = study.report(record)
     for line in study.summary_lines(rep):
         say(line)
@@ -121,6 +115,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _infeasible(args: argparse.Namespace, scene: Any, err: Exception) -> int:
+    """Reported, not crashed: the report says why, the exit code says bad input."""
+    if args.report:
+        _write_json(
+            args.report, {"scene": {"path": scene.path}, "feasible": False, "reason": str(err)}
+        )
+    print(f"hapticloud: error: scene is infeasible: {err}", file=sys.stderr)
+    return 2
+
+
 def _run_hardware(args: argparse.Namespace, scene: Any, say: Any) -> int:
     from hapticloud.core.sim.closed_loop import InfeasibleSceneError
     from hapticloud.hardware.session.run import run_session, summary_lines
@@ -128,12 +132,7 @@ def _run_hardware(args: argparse.Namespace, scene: Any, say: Any) -> int:
     try:
         rep = run_session(args.scene, overrides(args.set), args.duration, progress=say)
     except InfeasibleSceneError as err:
-        if args.report:
-            _write_json(
-                args.report, {"scene": {"path": scene.path}, "feasible": False, "reason": str(err)}
-            )
-        print(f"hapticloud: error: scene is infeasible: {err}", file=sys.stderr)
-        return 2
+        return _infeasible(args, scene, err)
     except (RuntimeError, TimeoutError) as err:
         print(f"hapticloud: error: {str(err).splitlines()[0]}", file=sys.stderr)
         return 1
