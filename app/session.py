@@ -102,6 +102,16 @@ def default_dynamics(scene: str) -> Any:
 APP_PROCESS_KWARGS: dict[str, Any] = {"bus_timing": False, "spin_s": 50e-6}
 
 
+def scene_tables(scene: str) -> dict[str, Any]:
+    """The scene's ``haptics`` and ``controller`` tables as its control process uses them: the
+    panel's Haptics and Controller tabs start from these, not from the library defaults."""
+    from hapticloud.core.scene import load_scene
+    from hapticloud.core.sim.closed_loop import scene_controller_config
+
+    loaded = load_scene(CONTROL_SCENES.get(scene, scene))
+    return {"haptics": loaded.config.haptics, "controller": scene_controller_config(loaded)}
+
+
 class Session:
     """The control process of a scene, run and watched from the GUI process.
 

@@ -94,3 +94,14 @@ def test_escape_emergency_stops_the_session(supervised) -> None:
     )
     qtbot.waitUntil(lambda: window.session_panel.state_text() == "emergency_stop", timeout=2000)
     assert window.session_panel.reset_button.isEnabled()
+
+
+def test_the_control_tabs_start_from_the_scene_tables():
+    from hapticloud.app.session import scene_tables
+    from hapticloud.core.scene import load_scene
+
+    tables = scene_tables("demo")
+    scene = load_scene("demo")
+    assert tables["haptics"] == scene.config.haptics
+    # As the closed loop builds it: fixed walls keep the HIP sphere out.
+    assert tables["controller"].walls.margin_m == scene.config.robot.hip_radius_m

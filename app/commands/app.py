@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import re
 import sys
 from pathlib import Path
@@ -102,7 +103,14 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"scene {args.scene!r}: unknown{hint}; built-in scenes: {', '.join(SCENES)}"
         )
-    config = LiveConfig.load(args.preset) if args.preset else LiveConfig()
+    if args.preset:
+        config = LiveConfig.load(args.preset)
+    elif args.no_session:
+        config = LiveConfig()
+    else:
+        from hapticloud.app.session import scene_tables
+
+        config = dataclasses.replace(LiveConfig(), **scene_tables(args.scene))
     try:
         config = config.with_overrides(overrides(args.set))
     except ConfigError as err:

@@ -242,6 +242,17 @@ _SCALAR_FIELDS = (
 
 
 # ----- the simulation ----------------------------------------------------------------------------
+def scene_controller_config(scene: Scene) -> Any:
+    """The scene's controller table as the closed loop uses it: fixed walls keep the HIP sphere
+    out, like every other surface, unless the scene sets ``controller.walls.margin_m``."""
+    controller_cfg = scene.config.controller
+    if "margin_m" not in scene.data.get("controller", {}).get("walls", {}):
+        controller_cfg = controller_cfg.replace_path(
+            "walls.margin_m", scene.config.robot.hip_radius_m
+        )
+    return controller_cfg
+
+
 class ClosedLoopSim:
     """A scene built for a closed-loop run (see the module docstring).
 
@@ -306,10 +317,7 @@ class ClosedLoopSim:
         self.fusion = SurfaceFusion(cfg.fusion) if self.cameras else None
 
         # Control: the controller (fixed walls at level 3) and the tick.
-        controller_cfg = cfg.controller
-        if "margin_m" not in scene.data.get("controller", {}).get("walls", {}):
-            # Fixed walls keep the HIP sphere out, like every other surface.
-            controller_cfg = controller_cfg.replace_path("walls.margin_m", self.hip_radius_m)
+        controller_cfg = scene_controller_config(scene)
         self.controller = build_controller(self.robot, controller_cfg, self.walls)
         self.loop = HapticLoop(
             self.robot,
