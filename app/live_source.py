@@ -312,7 +312,31 @@ def scene_geometry(settings: SimSettings, scene: SimScene | None = None) -> Scen
     )
     robot = robot_at(settings, SCENES[settings.scene].hip_path(0.0))
     shapes = tuple(_shape_kind(p) for p in robot)
+    # Slots for the exoskeleton's links once a session drives the robot (session_robot): the
+    # ball, then one capsule per link; unused slots are hidden.
+    n_links = len(_link_model().capsule_specs)
+    shapes = shapes + ("capsule",) * max(0, 1 + n_links - len(shapes))
     return SceneGeometry(scene.name, cameras, bodies, settings.r_hip_m, shapes, scene.description)
+
+
+_LINK_MODEL: list[Any] = []
+
+
+def _link_model() -> Any:
+    """The robot model (loaded once per process) whose link capsules are drawn and occlude."""
+    if not _LINK_MODEL:
+        from hapticloud.core.robot import RobotModel
+
+        _LINK_MODEL.append(RobotModel.load())
+    return _LINK_MODEL[0]
+
+
+def session_robot(hip: FloatArray, q: FloatArray) -> tuple[Primitive, ...]:
+    """The robot as a session moves it: the end-effector ball at the HIP and every link of the
+    exoskeleton (with the patient's strapped-in arm) at ``q``, as the closed-loop simulator
+    renders and crops it."""
+    ball = end_effector(hip, np.asarray(DEMO_HANDLE_DIRECTION, dtype=np.float64))[0]
+    return (ball, *_link_model().link_capsules(q))
 
 
 # ----- the worker (process or thread) -------------------------------------------------------------
@@ -344,13 +368,18 @@ class _SessionFeed:
         self.dropped = 0
         self.alive = True
 
-    def hip(self) -> FloatArray | None:
+    def state(self) -> tuple[FloatArray, FloatArray] | None:
+        """The robot's HIP (m) and joint positions (rad) now, or ``None``."""
         if not self.alive:
             return None
         state = self._block.read()
-        if state is None or not np.isfinite(state.hip_m).all():
+        if state is None or not (np.isfinite(state.hip_m).all() and np.isfinite(state.q_rad).all()):
             return None
-        return np.asarray(state.hip_m, dtype=np.float64)
+        return np.asarray(state.hip_m, dtype=np.float64), np.asarray(state.q_rad, np.float64)
+
+    def hip(self) -> FloatArray | None:
+        live = self.state()
+        return None if live is None else live[0]
 
     def send(self, est: SurfaceEstimate, captured: float) -> None:
         if not self.alive:
@@ -520,9 +549,14 @@ def _worker_loop(
                 config = requested
 
             captured = time.monotonic()
-            live_hip = feed.hip() if feed is not None else None
-            hip = np.asarray(hip_path(t), dtype=np.float64) if live_hip is None else live_hip
-            robot = robot_at(settings, hip)
+            live = feed.state() if feed is not None else None
+            live_hip = None if live is None else live[0]
+            if live is None:
+                hip = np.asarray(hip_path(t), dtype=np.float64)
+                robot = robot_at(settings, hip)
+            else:
+                hip = live_hip
+                robot = session_robot(*live)
             t0 = time.perf_counter()
             depth = cam.render(world, t, occluders=robot)
             render_ms = 1e3 * (time.perf_counter() - t0)

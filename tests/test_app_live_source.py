@@ -99,3 +99,19 @@ def test_errors_against_truth_are_small_on_the_demo(source: LiveSource) -> None:
     valid = errors[np.isfinite(errors)]
     assert len(valid) > 5
     assert float(np.median(valid)) < 10.0
+
+
+def test_a_session_robot_fills_the_geometry_slots_with_the_links():
+    from hapticloud.app.live_source import SimSettings, scene_geometry, session_robot
+    from hapticloud.core.geometry.primitives import Capsule, Sphere
+    from hapticloud.core.robot import RobotModel
+
+    model = RobotModel.load()
+    q = model.q_home
+    hip = model.hip_position_at(q)
+    robot = session_robot(hip, q)
+    geometry = scene_geometry(SimSettings())
+    assert isinstance(robot[0], Sphere) and np.allclose(robot[0].center, hip)
+    assert all(isinstance(p, Capsule) for p in robot[1:])
+    assert len(robot) == 1 + len(model.capsule_specs) <= len(geometry.robot_shapes)
+    assert geometry.robot_shapes[: len(robot)] == ("sphere",) + ("capsule",) * (len(robot) - 1)
