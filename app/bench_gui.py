@@ -55,18 +55,18 @@ class _Frames:
     def __init__(self, seed: int = 0) -> None:
         from hapticloud.app.live_source import (
             FRAME_COLUMNS,
-            SCENES,
             TICK_COLUMNS,
             History,
             LiveConfig,
             SimSettings,
             robot_at,
             scene_geometry,
+            scene_spec,
         )
 
         self.settings = SimSettings(decimation=2)
         self.geometry = scene_geometry(self.settings)
-        self._hip_path = SCENES[self.settings.scene].hip_path
+        self._hip_path = scene_spec(self.settings.scene).hip_path
         self._robot_at = robot_at
         self._config = LiveConfig()
         self._history = History(np.zeros((0, len(FRAME_COLUMNS))), np.zeros((0, len(TICK_COLUMNS))))

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 import multiprocessing as mp
 import queue
@@ -263,8 +264,7 @@ class SimSettings:
     handle_direction: tuple[float, float, float] = DEMO_HANDLE_DIRECTION
 
     def __post_init__(self) -> None:
-        if self.scene not in SCENES:
-            raise ConfigError(f"scene = {self.scene!r}: unknown (available: {', '.join(SCENES)})")
+        scene_spec(self.scene)  # a one-line ConfigError for an unknown scene or a bad file
         if not (math.isfinite(self.speed) and 0 < self.speed <= 10):
             raise ConfigError(f"speed = {self.speed}: must be in (0, 10]")
         if self.decimation not in (1, 2, 4):
@@ -280,14 +280,63 @@ class SceneSpec:
     description: str
 
 
-#: Built-in scenes by name. Scene files (TOML) will add entries once ``core`` can load them.
+#: Built-in scenes by name; any other name is a scene file or a shipped scene of
+#: ``assets/scenes/`` (:func:`scene_spec`).
 SCENES: dict[str, SceneSpec] = {
     "demo": SceneSpec(demo_scene, hip_at, "seated patient, hand reaching from chest to face"),
 }
 
 
+def scene_spec(name: str) -> SceneSpec:
+    """The built-in scene ``name``, or one made from a scene file (``core.scene``): its bodies
+    at their poses at t = 0 and its simulated D435s; without a session its HIP stays at the
+    scene's ``hip0`` (a session moves it). Raises a one-line ConfigError for a bad name or file.
+    """
+    spec = SCENES.get(name)
+    return spec if spec is not None else _file_scene_spec(name)
+
+
+@functools.lru_cache(maxsize=8)
+def _file_scene_spec(name: str) -> SceneSpec:
+    from hapticloud.core.scene import load_scene
+
+    try:
+        loaded = load_scene(name)
+    except ConfigError as err:
+        builtin = ", ".join(SCENES)
+        raise ConfigError(f"{err} (built-in scenes: {builtin}; or a scene file)") from None
+
+    @functools.lru_cache(maxsize=4)
+    def build(decimation: int = 1) -> SimScene:
+        from hapticloud.core.sim.closed_loop import ClosedLoopSim
+
+        over = {f"cameras.{c.name}.decimation": decimation for c in loaded.cameras}
+        sim = ClosedLoopSim(loaded.with_overrides(over) if decimation > 1 else loaded)
+        cams = tuple(c.camera for c in sim.cameras if c.camera is not None)
+        world = sim.world.at(0.0)
+        if not cams or world is None:
+            raise ConfigError(
+                f"scene {name!r}: the app needs bodies and simulated D435 cameras to show "
+                "(oracle cameras render nothing)"
+            )
+        return SimScene(
+            name=loaded.config.scene.name,
+            world=world,
+            cameras=cams,
+            description=loaded.config.scene.description,
+        )
+
+    @functools.lru_cache(maxsize=1)
+    def hip0() -> FloatArray:
+        from hapticloud.core.sim.closed_loop import ClosedLoopSim
+
+        return read_only_copy(ClosedLoopSim(loaded).hip0)
+
+    return SceneSpec(build, lambda t: hip0(), loaded.config.scene.description)
+
+
 def build_scene(settings: SimSettings) -> SimScene:
-    return SCENES[settings.scene].build(decimation=settings.decimation)
+    return scene_spec(settings.scene).build(decimation=settings.decimation)
 
 
 def robot_at(settings: SimSettings, hip: FloatArray) -> tuple[Primitive, ...]:
@@ -310,7 +359,7 @@ def scene_geometry(settings: SimSettings, scene: SimScene | None = None) -> Scen
         BodyMesh(body.name, body.part, *body.rest_mesh_arrays(DISPLAY_MESH_TOLERANCE_M))
         for body in scene.world.bodies
     )
-    robot = robot_at(settings, SCENES[settings.scene].hip_path(0.0))
+    robot = robot_at(settings, scene_spec(settings.scene).hip_path(0.0))
     shapes = tuple(_shape_kind(p) for p in robot)
     # Slots for the exoskeleton's links once a session drives the robot (session_robot): the
     # ball, then one capsule per link; unused slots are hidden.
@@ -501,7 +550,7 @@ def _worker_loop(
     limit_blas_threads(1)
     scene = build_scene(settings)
     world, cameras = scene.world, scene.cameras
-    hip_path = SCENES[settings.scene].hip_path
+    hip_path = scene_spec(settings.scene).hip_path
     r_hip = settings.r_hip_m
     pipes = [CameraPipeline(config.perception, camera=c.name) for c in cameras]
     fusion = SurfaceFusion(config.fusion)

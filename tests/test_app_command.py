@@ -36,8 +36,8 @@ def test_app_is_the_default_command_and_demo_stays() -> None:
 @pytest.mark.parametrize(
     ("argv", "reason"),
     [
-        (["app", "nowhere"], "scene 'nowhere': unknown"),
-        (["app", "scene.toml"], "scene files are not supported yet"),
+        (["app", "nowhere"], "nowhere: no such scene file (built-in scenes: demo"),
+        (["app", "scene.toml"], "scene.toml: no such scene file"),
         (["app", "--set", "perception.voxel.voxel_size_m=-1"], "must be in [0.0005, 0.05] m"),
         (["app", "--set", "fusion.nope=1"], "unknown key"),
         (["app", "--preset", "/nonexistent.toml"], "no such file"),

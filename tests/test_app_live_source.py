@@ -68,7 +68,7 @@ def test_only_built_configs_are_accepted(source: LiveSource) -> None:
 
 
 def test_bad_settings_are_refused_with_a_reason() -> None:
-    with pytest.raises(ConfigError, match="unknown"):
+    with pytest.raises(ConfigError, match="nowhere: no such scene file"):
         SimSettings(scene="nowhere")
     with pytest.raises(ConfigError, match="decimation"):
         SimSettings(decimation=3)
@@ -115,3 +115,17 @@ def test_a_session_robot_fills_the_geometry_slots_with_the_links():
     assert all(isinstance(p, Capsule) for p in robot[1:])
     assert len(robot) == 1 + len(model.capsule_specs) <= len(geometry.robot_shapes)
     assert geometry.robot_shapes[: len(robot)] == ("sphere",) + ("capsule",) * (len(robot) - 1)
+
+
+def test_scene_files_open_in_the_app_and_bad_ones_say_why():
+    from hapticloud.app.live_source import SimSettings, scene_spec
+    from hapticloud.core.errors import ConfigError
+
+    spec = scene_spec("impacts")  # a shipped scene file
+    scene = spec.build(decimation=4)
+    assert [c.name for c in scene.cameras] == ["front", "right45"]
+    assert scene.world.bodies and np.isfinite(spec.hip_path(0.0)).all()
+    assert SimSettings(scene="impacts").scene == "impacts"
+    with pytest.raises(ConfigError) as err:
+        SimSettings(scene="no-such-scene")
+    assert "no-such-scene" in str(err.value) and "\n" not in str(err.value)

@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "scene",
         nargs="?",
         default="demo",
-        help="built-in scene (default: demo, the seated patient reaching to the face)",
+        help="built-in scene (default: demo, the seated patient reaching to the face), a shipped "
+        "scene of assets/scenes (impacts, sliding, wall, moving-surface) or a scene file",
     )
     parser.add_argument(
         "--screenshot", metavar="PATH", help="save the window as PNG after --exit-after seconds"
@@ -96,13 +97,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hapticloud.app.live_source import SCENES, LiveConfig, SimSettings
+    from hapticloud.app.live_source import LiveConfig, SimSettings, scene_spec
 
-    if args.scene not in SCENES:
-        hint = " (scene files are not supported yet)" if args.scene.endswith(".toml") else ""
-        raise ConfigError(
-            f"scene {args.scene!r}: unknown{hint}; built-in scenes: {', '.join(SCENES)}"
-        )
+    # A one-line error for an unknown scene, a bad file or one the app cannot show, before any
+    # process starts (the build is cached: the window reuses it).
+    scene_spec(args.scene).build(decimation=args.decimation)
     if args.preset:
         config = LiveConfig.load(args.preset)
     elif args.no_session:
