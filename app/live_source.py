@@ -487,7 +487,7 @@ class _End:
 def _estimate_fields(est: SurfaceEstimate) -> dict[str, Any]:
     out = {f.name: getattr(est, f.name) for f in dataclasses.fields(est)}
     out["stage_ms"] = dict(est.stage_ms)
-    for name in ("points", "filled"):
+    for name in ("points", "filled", "rejected"):
         if out[name] is not None:
             out[name] = out[name].astype(np.float32)  # half the bytes through the pipe
     return out

@@ -492,6 +492,7 @@ class SceneView(QtWidgets.QWidget):
             items += [
                 (STAGE_COLOURS["kept"], "kept"),
                 (STAGE_COLOURS["filled"], "filled (ICP memory)"),
+                (STAGE_COLOURS["rejected"], "rejected clusters"),
             ]
             if self._layer_on["context"]:
                 items.append((STAGE_COLOURS["cropped"], "cropped"))
@@ -653,10 +654,9 @@ class SceneView(QtWidgets.QWidget):
         self._visible(
             f"filled:{name}", _set_cloud(self._meshes[f"filled:{name}"], est.filled), "clouds"
         )
-        # Points of rejected clusters, once the pipeline hands them on (not in SurfaceEstimate yet).
-        rejected = getattr(est, "rejected", None)
+        # Points of the clusters stage C rejected.
         self._visible(
-            f"rejected:{name}", _set_cloud(self._meshes[f"rejected:{name}"], rejected), "clouds"
+            f"rejected:{name}", _set_cloud(self._meshes[f"rejected:{name}"], est.rejected), "clouds"
         )
         if est.valid:
             self._move(f"centroid:{name}", _scaled_at(est.centroid, 0.005))

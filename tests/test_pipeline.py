@@ -187,3 +187,15 @@ def test_primitives_validate_their_arguments() -> None:
         Box([0, 0, 0], [1, 0, 1])
     with pytest.raises(ValueError, match="rotation"):
         Box([0, 0, 0], [1, 1, 1], rotation=np.diag([1.0, 1.0, -1.0]))
+
+
+def test_points_of_rejected_clusters_are_handed_on() -> None:
+    """A small blob beside the surface is a cluster stage C drops: the estimate carries it."""
+    center = np.array([0.0, 0.0, -0.09])
+    rng = np.random.default_rng(3)
+    blob = np.array([0.06, 0.06, 0.02]) + 0.002 * rng.normal(size=(40, 3))
+    cloud = np.vstack([sphere_cloud(center, 0.09, HIP), blob])
+    est = CameraPipeline(PerceptionConfig()).process(cloud, HIP, AXIS)
+    assert est.valid and est.rejected is not None and est.rejected.shape[1] == 3
+    assert est.rejected.shape[0] > 0 and not est.rejected.flags.writeable
+    assert np.linalg.norm(est.rejected.mean(axis=0) - [0.06, 0.06, 0.02]) < 0.01

@@ -86,6 +86,8 @@ class SurfaceEstimate:
     points: FloatArray | None = None
     filled: FloatArray | None = None
     stage_ms: Mapping[str, float] = field(default_factory=dict)
+    #: Points of the clusters stage C rejected (``keep_points`` only; world, m).
+    rejected: FloatArray | None = None
     seq: int = 0
 
     def __post_init__(self) -> None:
@@ -104,7 +106,7 @@ class SurfaceEstimate:
         object.__setattr__(self, "t", float(self.t))
         if self.hip is not None:
             object.__setattr__(self, "hip", _frozen_vec3(self.hip)[0])
-        for name in ("points", "filled"):
+        for name in ("points", "filled", "rejected"):
             value = getattr(self, name)
             if value is not None:
                 object.__setattr__(self, name, _frozen_points(value))

@@ -177,6 +177,7 @@ class CameraPipeline:
         if cfg.keep_points:
             extra["points"] = clusters.points
             extra["filled"] = rebuilt.filled
+            extra["rejected"] = clusters.rejected
         if not fit.valid:
             reason = fit.reason
             if cropped.n_kept == 0:
