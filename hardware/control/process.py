@@ -32,12 +32,13 @@ every tick to a :class:`~.shared_state.RobotStateBlock` under a sequence lock, f
 crop around.
 
 Reactions (:mod:`hapticloud.hardware.session.watchdogs`): HOLD_SURFACE keeps the last fused
-surface, still, and caps the approach speed at ``hold_v_min_m_s``; DAMPING sends gravity and
-Coriolis compensation minus joint damping; TORQUE_OFF (and every state but ENABLED) sends zero
-torque; the link itself also blocks torque to any drive not in OPERATION ENABLED and clamps to
-the drive limits. Every tick is recorded (times, torques sent, state, reaction level, distance,
-approach speed and its cap) and returned by :meth:`ControlProcess.stop`, so tests assert
-reactions from the log, not from sleeping. SIGINT in the child is an emergency stop.
+surface, still, and caps the approach speed at ``hold_v_min_m_s``; DAMPING adds joint damping to
+that (the haptic tick's torque minus ``damping_nms`` times the joint velocities); TORQUE_OFF (and
+every state but ENABLED) sends zero torque; the link itself also blocks torque to any drive not in
+OPERATION ENABLED and clamps to the drive limits. Every tick is recorded (times, torques sent,
+state, reaction level, distance, approach speed and its cap) and returned by
+:meth:`ControlProcess.stop`, so tests assert reactions from the log, not from sleeping. SIGINT in
+the child is an emergency stop.
 """
 
 from __future__ import annotations
@@ -531,9 +532,10 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             if torque:
                 target = DriveTarget.ENABLED
                 if level >= L.DAMPING:
-                    # Gravity and Coriolis compensated, joint velocities damped: the arm comes
-                    # to rest where it is and the patient can move it gently.
-                    tau = robot.nonlinear_effects() - damping * fb.velocity_rad_s
+                    # The haptic tick on the held surface (approach capped at v_min) with the
+                    # joint velocities damped on top: the arm comes to rest where it is and the
+                    # held surface still stops it (damping alone would drop the constraint).
+                    tau = res.tau - damping * fb.velocity_rad_s
                 else:
                     tau = res.tau
             else:
