@@ -278,6 +278,9 @@ class SceneSpec:
     build: Callable[..., SimScene]
     hip_path: Callable[[float], FloatArray]
     description: str
+    #: The world at time ``t`` (s) for scenes whose bodies move on a schedule (scene files);
+    #: ``None``: ``build(...).world`` moves by itself.
+    world_at: Callable[[float], Any] | None = None
 
 
 #: Built-in scenes by name; any other name is a scene file or a shipped scene of
@@ -327,12 +330,21 @@ def _file_scene_spec(name: str) -> SceneSpec:
         )
 
     @functools.lru_cache(maxsize=1)
-    def hip0() -> FloatArray:
+    def sim() -> Any:
         from hapticloud.core.sim.closed_loop import ClosedLoopSim
 
-        return read_only_copy(ClosedLoopSim(loaded).hip0)
+        return ClosedLoopSim(loaded)
 
-    return SceneSpec(build, lambda t: hip0(), loaded.config.scene.description)
+    def hip_path(t: float) -> FloatArray:
+        return read_only_copy(sim().hip0)
+
+    def world_at(t: float) -> Any:
+        # The scene's schedule (start, duration) as the closed loop runs it: the moving
+        # surface moves in the view and in the simulated cameras too.
+        return sim().world.at(t)
+
+    moving = any(np.any(b.velocity_mps) for b in loaded.bodies) or loaded.has_surface
+    return SceneSpec(build, hip_path, loaded.config.scene.description, world_at if moving else None)
 
 
 def build_scene(settings: SimSettings) -> SimScene:
@@ -550,7 +562,8 @@ def _worker_loop(
     limit_blas_threads(1)
     scene = build_scene(settings)
     world, cameras = scene.world, scene.cameras
-    hip_path = scene_spec(settings.scene).hip_path
+    spec = scene_spec(settings.scene)
+    hip_path, world_at = spec.hip_path, spec.world_at
     r_hip = settings.r_hip_m
     pipes = [CameraPipeline(config.perception, camera=c.name) for c in cameras]
     fusion = SurfaceFusion(config.fusion)
@@ -607,6 +620,8 @@ def _worker_loop(
                 hip = live_hip
                 robot = session_robot(*live)
             t0 = time.perf_counter()
+            if world_at is not None:
+                world = world_at(t)
             depth = cam.render(world, t, occluders=robot)
             render_ms = 1e3 * (time.perf_counter() - t0)
             est = pipes[j].process_depth(depth, hip, exclude=robot)
