@@ -654,9 +654,10 @@ class SceneView(QtWidgets.QWidget):
         self._visible(
             f"filled:{name}", _set_cloud(self._meshes[f"filled:{name}"], est.filled), "clouds"
         )
-        # Points of the clusters stage C rejected.
+        # Points of the clusters stage C rejected: part of the by-stage picture only.
+        rejected = est.rejected if self._color_mode == "stage" else None
         self._visible(
-            f"rejected:{name}", _set_cloud(self._meshes[f"rejected:{name}"], est.rejected), "clouds"
+            f"rejected:{name}", _set_cloud(self._meshes[f"rejected:{name}"], rejected), "clouds"
         )
         if est.valid:
             self._move(f"centroid:{name}", _scaled_at(est.centroid, 0.005))
