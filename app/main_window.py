@@ -249,7 +249,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.session = make_session()
             self.session.start()  # returns at once; the source waits for it (poll)
         self.session_panel.set_session(self.session, self.emergency_stop)
-        self._haptics_note()
+        self._control_tables_note()
         self._start_source(config)
         self.timer = QtCore.QTimer(self)
         self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
@@ -300,22 +300,18 @@ class MainWindow(QtWidgets.QMainWindow):
         bar.addWidget(self.stop_label)
 
     # ----- the session -------------------------------------------------------------------------
-    def _haptics_note(self) -> None:
+    def _control_tables_note(self) -> None:
+        """Say on the Haptics and Controller tabs whether a control process takes them."""
         session = self.session
         if session is None:
-            note, read_only = "Haptics act on the control process: no session runs.", True
+            note, read_only = "These act on the control process: no session runs.", True
         elif session.phase is SessionPhase.FAILED:
-            note, read_only = f"No session ({session.message}): haptics not applied.", True
-        elif not session.can_configure:
-            note = (
-                "Read-only: the control process cannot take haptics changes while it runs yet "
-                "(no ControlProcess.configure); it uses the scene's haptics table. Values shown "
-                "are the defaults."
-            )
-            read_only = True
+            note, read_only = f"No session ({session.message}): not applied.", True
         else:
             note, read_only = "Applied to the control loop at its next tick.", False
         self.panel.set_table_note("haptics", note, read_only=read_only)
+        controller_note = note if read_only else f"{note} Only while the session is not enabled."
+        self.panel.set_table_note("controller", controller_note, read_only=read_only)
 
     def _poll_session(self) -> None:
         session = self.session
@@ -391,7 +387,7 @@ class MainWindow(QtWidgets.QMainWindow):
         fusion = config.fusion if config.fusion != old.fusion else None
         controller = config.controller if config.controller != old.controller else None
         changed = haptics is not None or fusion is not None or controller is not None
-        if changed and session.can_configure:
+        if changed:
             session.configure(haptics=haptics, fusion=fusion, controller=controller)
 
     def _show_refusal(self, reason: str) -> None:
@@ -405,7 +401,7 @@ class MainWindow(QtWidgets.QMainWindow):
         started = session is not None and session.phase is not SessionPhase.STARTING
         if session is not None and started and not self._attached:
             self._attached = True
-            self._haptics_note()
+            self._control_tables_note()
             attach = session.attach
             if attach is None:
                 self.statusBar().showMessage(f"{session.message}; perception only", 0)

@@ -632,6 +632,11 @@ class ParamPanel(QtWidgets.QWidget):
             if path.startswith(f"{top}."):
                 row.editor.setEnabled(not read_only)
 
+    def table_note(self, top: str) -> str:
+        """The note shown on table ``top``'s tab ("" for none)."""
+        label = self._notes.get(top)
+        return label.text() if label is not None else ""
+
     def table_read_only(self, top: str) -> bool:
         rows = [r for p, r in self._rows.items() if p.startswith(f"{top}.")]
         return bool(rows) and not any(r.editor.isEnabled() for r in rows)

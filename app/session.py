@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from hapticloud.hardware.control import STATE_CODES
 from numpy.typing import NDArray
 
 from .live_source import HISTORY_S, SessionAttach, _Ring
@@ -50,12 +51,6 @@ SNAPSHOT_RATE_HZ = 100.0
 MAX_ALARMS = 200
 #: The scene files of the app's built-in scenes, for the control process.
 CONTROL_SCENES = {"demo": "demo"}
-STATE_INDEX = {
-    s: i
-    for i, s in enumerate(
-        ("disconnected", "connected", "ready", "enabled", "fault", "emergency_stop")
-    )
-}
 
 
 class SessionPhase(enum.Enum):
@@ -83,16 +78,11 @@ class Alarm:
 
 
 def default_dynamics(scene: str) -> Any:
-    """The emulated arm pushed by the scene's simulated patient, when the hardware layer has it
-    (:class:`hapticloud.hardware.drives.scene_arm.SceneArmFactory`); ``None``: a rigid arm."""
-    try:
-        from hapticloud.hardware.drives.scene_arm import SceneArmFactory  # type: ignore
-    except ImportError:
-        return None
-    try:
-        return SceneArmFactory(scene)
-    except Exception:  # a factory that refuses the scene: the rigid arm
-        return None
+    """The emulated arm pushed by the scene's simulated patient (a rigid arm when the scene has
+    none): :class:`~hapticloud.hardware.drives.scene_arm.SceneArmFactory`."""
+    from hapticloud.hardware.drives.scene_arm import SceneArmFactory
+
+    return SceneArmFactory(scene)
 
 
 #: The control process as the app runs it: the drives answer right after the SYNC (no bus timing
@@ -277,7 +267,7 @@ class Session:
                 s.approach_mps,
                 force,
                 d_mm,
-                STATE_INDEX.get(s.state, -1),
+                STATE_CODES.get(s.state, -1),
             )
             for t, kind, text in s.events:
                 self.alarms.appendleft(Alarm(t, kind, text))
@@ -317,18 +307,11 @@ class Session:
                 return True
         return self._command("emergency_stop", reason)
 
-    @property
-    def can_configure(self) -> bool:
-        """Whether the control process takes haptics / fusion changes while it runs."""
-        from hapticloud.hardware.control import ControlProcess
-
-        return callable(getattr(ControlProcess, "configure", None))
-
     def configure(self, *, haptics: Any = None, fusion: Any = None, controller: Any = None) -> bool:
         """Send new haptics, fusion and/or controller parameters to the loop (False: not sent;
         a controller change while enabled is refused by the loop, shown in the alarms)."""
         cp = self.process
-        if cp is None or not callable(getattr(cp, "configure", None)):
+        if cp is None:
             return False
         try:
             cp.configure(haptics=haptics, fusion=fusion, controller=controller)

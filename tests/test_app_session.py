@@ -73,13 +73,22 @@ def test_force_arrow_moves_without_adding_actors(supervised) -> None:
 
 
 def test_haptics_table_is_in_the_panel(supervised) -> None:
-    window, _ = supervised
+    window, qtbot = supervised
     tabs = [window.panel.tabs.tabText(i) for i in range(window.panel.tabs.count())]
     assert "Haptics" in tabs
     editor = window.panel.editor("haptics.clearance_m")
     assert editor is not None
-    # Editable exactly when the control process can take changes while it runs.
-    assert window.panel.table_read_only("haptics") == (not window.session.can_configure)
+    # A running session takes haptics and controller changes: both tables become editable.
+    qtbot.waitUntil(
+        lambda: (
+            not window.panel.table_read_only("haptics")
+            and not window.panel.table_read_only("controller")
+        ),
+        timeout=30_000,
+    )
+    assert window.session.running
+    assert window.panel.table_note("haptics") == "Applied to the control loop at its next tick."
+    assert "not enabled" in window.panel.table_note("controller")
 
 
 def test_escape_emergency_stops_the_session(supervised) -> None:

@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import ConfigError, InputError
 from ..geometry import Capsule
+from ..validation import read_only
 
 FloatArray = NDArray[np.float64]
 
@@ -92,11 +93,6 @@ def default_urdf_path() -> Path:
         if candidate.is_file():
             return candidate
     return Path(__file__).resolve().parents[2] / "assets" / relative
-
-
-def _readonly(arr: FloatArray) -> FloatArray:
-    arr.setflags(write=False)
-    return arr
 
 
 def _rpy_matrix(roll: float, pitch: float, yaw: float) -> FloatArray:
@@ -165,7 +161,7 @@ def parse_link_capsules(urdf_text: str, source: str = "URDF") -> tuple[LinkCapsu
                 a, b = xyz.copy(), xyz.copy()
             out.append(
                 LinkCapsule(
-                    link_name, name, radius, _readonly(a), _readonly(b), name.startswith("guided")
+                    link_name, name, radius, read_only(a), read_only(b), name.startswith("guided")
                 )
             )
     return tuple(out)
@@ -202,10 +198,10 @@ class RobotModel:
         self._n = int(pin_model.nv)
         self._joint_names = tuple(str(name) for name in list(pin_model.names)[1:])
         limits = JointLimits(
-            _readonly(np.array(pin_model.lowerPositionLimit, dtype=np.float64)),
-            _readonly(np.array(pin_model.upperPositionLimit, dtype=np.float64)),
-            _readonly(np.array(pin_model.velocityLimit, dtype=np.float64)),
-            _readonly(np.array(pin_model.effortLimit, dtype=np.float64)),
+            read_only(np.array(pin_model.lowerPositionLimit, dtype=np.float64)),
+            read_only(np.array(pin_model.upperPositionLimit, dtype=np.float64)),
+            read_only(np.array(pin_model.velocityLimit, dtype=np.float64)),
+            read_only(np.array(pin_model.effortLimit, dtype=np.float64)),
         )
         for i, name in enumerate(self._joint_names):
             ok = (
@@ -227,7 +223,7 @@ class RobotModel:
             if not pin_model.existFrame(cap.link, pin.BODY):
                 raise ConfigError(f"{source or 'robot model'}: no link {cap.link!r} for {cap.name}")
             self._capsule_frames.append(pin_model.getFrameId(cap.link, pin.BODY))
-        self._q_home = _readonly(self._home_from(home or HOME_CONFIGURATION))
+        self._q_home = read_only(self._home_from(home or HOME_CONFIGURATION))
 
         self._data = pin_model.createData()
         self._data_sim = pin_model.createData()
@@ -360,14 +356,14 @@ class RobotModel:
         mass[self._lower] = mass.T[self._lower]
         nle = pin.nonLinearEffects(model, data, q, qd).copy()
 
-        self._q = _readonly(q.copy())
-        self._qd = _readonly(qd.copy())
-        self._hip_pos = _readonly(data.oMf[fid].translation.copy())
-        self._hip_jac = _readonly(np.ascontiguousarray(jac))
-        self._hip_vel = _readonly(self._hip_jac @ qd)
-        self._hip_acc = _readonly(acc.linear.copy())
-        self._mass = _readonly(mass)
-        self._nle = _readonly(nle)
+        self._q = read_only(q.copy())
+        self._qd = read_only(qd.copy())
+        self._hip_pos = read_only(data.oMf[fid].translation.copy())
+        self._hip_jac = read_only(np.ascontiguousarray(jac))
+        self._hip_vel = read_only(self._hip_jac @ qd)
+        self._hip_acc = read_only(acc.linear.copy())
+        self._mass = read_only(mass)
+        self._nle = read_only(nle)
 
     @property
     def q(self) -> FloatArray:

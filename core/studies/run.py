@@ -43,6 +43,7 @@ from ..errors import ConfigError
 from ..loop import FORCE, POSITIONAL, VELOCITY
 from ..scene import Scene, load_scene
 from ..sim.closed_loop import STATUS_CODES, ClosedLoopSim, RunRecord
+from .stats import json_float, summary
 
 FloatArray = NDArray[np.float64]
 
@@ -120,28 +121,6 @@ def sweep(
 
 
 # ----- metrics -----------------------------------------------------------------------------------
-def _num(x: float | None) -> float | None:
-    """JSON-safe float: ``None`` for NaN/inf."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def _stats(values: FloatArray, scale: float = 1.0) -> dict[str, float | None]:
-    v = np.asarray(values, dtype=np.float64) * scale
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return {"n": 0, "median": None, "p90": None, "p99": None, "max": None}
-    return {
-        "n": int(v.size),
-        "median": _num(np.median(v)),
-        "p90": _num(np.percentile(v, 90)),
-        "p99": _num(np.percentile(v, 99)),
-        "max": _num(v.max()),
-    }
-
-
 def _angles_deg(a: FloatArray, b: FloatArray) -> FloatArray:
     cos = np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0)
     return np.degrees(np.arccos(cos))
@@ -158,14 +137,14 @@ def estimate_errors(rec: RunRecord) -> dict[str, Any]:
         entry: dict[str, Any] = {
             "frames": len(frames),
             "near_frames": len(near),
-            "valid_near_fraction": _num(len(ok) / len(near)) if near else None,
-            "fused_near_fraction": _num(sum(f.admitted for f in near) / len(near))
+            "valid_near_fraction": json_float(len(ok) / len(near)) if near else None,
+            "fused_near_fraction": json_float(sum(f.admitted for f in near) / len(near))
             if near
             else None,
-            "fallback_near_fraction": _num(sum(f.fallback for f in near) / len(near))
+            "fallback_near_fraction": json_float(sum(f.fallback for f in near) / len(near))
             if near
             else None,
-            "perception_ms": _stats(np.array([f.perception_ms for f in frames if f.valid])),
+            "perception_ms": summary(np.array([f.perception_ms for f in frames if f.valid])),
         }
         if ok:
             c = np.array([f.centroid for f in ok])
@@ -175,9 +154,9 @@ def estimate_errors(rec: RunRecord) -> dict[str, Any]:
             hip = np.array([f.hip for f in ok])
             d_est = np.einsum("ij,ij->i", hip - c, n)
             d_true = np.array([f.true_distance_m for f in ok])
-            entry["centroid_mm"] = _stats(np.linalg.norm(c - tc, axis=1), 1e3)
-            entry["normal_deg"] = _stats(_angles_deg(n, tn))
-            entry["d_proj_error_mm"] = _stats(d_est - d_true, 1e3)
+            entry["centroid_mm"] = summary(np.linalg.norm(c - tc, axis=1), 1e3)
+            entry["normal_deg"] = summary(_angles_deg(n, tn))
+            entry["d_proj_error_mm"] = summary(d_est - d_true, 1e3)
         out["cameras"][name] = entry
     a = rec.arrays
     valid = a["fused_valid"] > 0
@@ -185,17 +164,17 @@ def estimate_errors(rec: RunRecord) -> dict[str, Any]:
     fused: dict[str, Any] = {"ticks": int(near.sum())}
     if near.any():
         n = a["fused_normal"][near]
-        fused["centroid_mm"] = _stats(
+        fused["centroid_mm"] = summary(
             np.linalg.norm(a["fused_centroid"][near] - a["true_point"][near], axis=1), 1e3
         )
-        fused["normal_deg"] = _stats(_angles_deg(n, a["true_normal"][near]))
+        fused["normal_deg"] = summary(_angles_deg(n, a["true_normal"][near]))
         d_fused = np.einsum("ij,ij->i", a["hip"][near] - a["fused_centroid"][near], n) - r
-        fused["d_proj_error_mm"] = _stats(d_fused - a["body_margin"][near], 1e3)
+        fused["d_proj_error_mm"] = summary(d_fused - a["body_margin"][near], 1e3)
     # Normal jumps between consecutive ticks that both have a valid fused surface.
     both = valid[1:] & valid[:-1]
     if both.any():
         jumps = _angles_deg(a["fused_normal"][1:][both], a["fused_normal"][:-1][both])
-        fused["normal_jump_deg"] = _stats(jumps)
+        fused["normal_jump_deg"] = summary(jumps)
     out["fused"] = fused
     return out
 
@@ -211,12 +190,12 @@ def control_stats(rec: RunRecord) -> dict[str, Any]:
     }
     return {
         "ticks": int(tick.size),
-        "rate_hz": _num(1.0 / rec.dt),
-        "tick_us": _stats(tick),
-        "step_us": _stats(a["step_us"]),
-        "solve_us": _stats(a["solve_us"]),
-        "tick_without_step_us": _stats(tick - a["step_us"]),
-        "misses_per_10k": _num(1e4 * float(np.count_nonzero(tick > DEADLINE_US)) / tick.size),
+        "rate_hz": json_float(1.0 / rec.dt),
+        "tick_us": summary(tick),
+        "step_us": summary(a["step_us"]),
+        "solve_us": summary(a["solve_us"]),
+        "tick_without_step_us": summary(tick - a["step_us"]),
+        "misses_per_10k": json_float(1e4 * float(np.count_nonzero(tick > DEADLINE_US)) / tick.size),
         "deadline_us": DEADLINE_US,
         "statuses": statuses,
         "failed_ticks": int(
@@ -224,7 +203,7 @@ def control_stats(rec: RunRecord) -> dict[str, Any]:
                 statuses.get(s.value, 0) for s in (ControlStatus.SOLVER_FAILED, ControlStatus.FAULT)
             )
         ),
-        "clamped_fraction": _num(np.mean(a["clamped"] > 0)),
+        "clamped_fraction": json_float(np.mean(a["clamped"] > 0)),
     }
 
 
@@ -236,13 +215,13 @@ def constraint_stats(rec: RunRecord) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, bit in (("positional", POSITIONAL), ("velocity", VELOCITY), ("force", FORCE)):
         out[name] = {
-            "rows_fraction": _num(np.mean(rows & bit > 0)),
-            "binding_fraction": _num(np.mean(bind & bit > 0)),
+            "rows_fraction": json_float(np.mean(rows & bit > 0)),
+            "binding_fraction": json_float(np.mean(bind & bit > 0)),
         }
     violated = a["violation"] > 1e-6
-    out["violated_fraction"] = _num(np.mean(violated))
-    out["violation_max"] = _num(a["violation"].max()) if a["violation"].size else None
-    out["surface_held_fraction"] = _num(
+    out["violated_fraction"] = json_float(np.mean(violated))
+    out["violation_max"] = json_float(a["violation"].max()) if a["violation"].size else None
+    out["surface_held_fraction"] = json_float(
         np.mean((a["nearest"] == 0) & (a["fused_valid"] == 0) & (rows > 0))
     )
     return out
@@ -288,22 +267,22 @@ def contact_stats(rec: RunRecord) -> dict[str, Any]:
         pre = slice(max(0, start - before), start + 1)
         out.append(
             {
-                "t_contact_s": _num(t[start]),
-                "t_deepest_s": _num(t[deep]),
-                "duration_s": _num((end - start) * dt),
-                "approach_speed_max_mps": _num(max(0.0, -rel[pre].min())),
-                "speed_at_contact_mps": _num(max(0.0, -rel[start])),
-                "min_margin_m": _num(margin[start:end].min()),
-                "impact_margin_m": _num(margin[deep]),
-                "penetration_m": _num(max(0.0, -margin[start:end].min())),
-                "rebound_m": _num(margin[after].max() - margin[deep]),
-                "rebound_speed_mps": _num(max(0.0, rel[after].max())),
+                "t_contact_s": json_float(t[start]),
+                "t_deepest_s": json_float(t[deep]),
+                "duration_s": json_float((end - start) * dt),
+                "approach_speed_max_mps": json_float(max(0.0, -rel[pre].min())),
+                "speed_at_contact_mps": json_float(max(0.0, -rel[start])),
+                "min_margin_m": json_float(margin[start:end].min()),
+                "impact_margin_m": json_float(margin[deep]),
+                "penetration_m": json_float(max(0.0, -margin[start:end].min())),
+                "rebound_m": json_float(margin[after].max() - margin[deep]),
+                "rebound_speed_mps": json_float(max(0.0, rel[after].max())),
             }
         )
     jitter = None
     if in_contact.any():
         smooth = _moving_average(margin, round(0.1 / dt))
-        jitter = _num(np.std((margin - smooth)[in_contact]) * 1e3)
+        jitter = json_float(np.std((margin - smooth)[in_contact]) * 1e3)
     return {"threshold_m": CONTACT_M, "episodes": out, "contact_jitter_mm": jitter}
 
 
@@ -313,14 +292,14 @@ def report(rec: RunRecord) -> dict[str, Any]:
     cfg = rec.scene.config
     margin = a["margin"]
     i_min = int(np.argmin(margin)) if margin.size else 0
-    min_margin = _num(margin[i_min]) if margin.size else None
+    min_margin = json_float(margin[i_min]) if margin.size else None
     contacts = contact_stats(rec)
     out: dict[str, Any] = {
         "scene": {
             "name": cfg.scene.name,
             "path": rec.scene.path,
             "description": cfg.scene.description,
-            "duration_s": _num(rec.n_ticks * rec.dt),
+            "duration_s": json_float(rec.n_ticks * rec.dt),
             "seed": cfg.scene.seed,
         },
         "built": rec.info,
@@ -328,16 +307,18 @@ def report(rec: RunRecord) -> dict[str, Any]:
         "hip_radius_m": rec.hip_radius_m,
         "clearance_m": cfg.haptics.clearance_m,
         "min_margin_m": min_margin,
-        "max_penetration_m": _num(max(0.0, -margin[i_min])) if margin.size else None,
-        "min_center_margin_m": _num(margin[i_min] + rec.hip_radius_m) if margin.size else None,
-        "t_min_margin_s": _num(a["t"][i_min]) if margin.size else None,
+        "max_penetration_m": json_float(max(0.0, -margin[i_min])) if margin.size else None,
+        "min_center_margin_m": json_float(margin[i_min] + rec.hip_radius_m)
+        if margin.size
+        else None,
+        "t_min_margin_s": json_float(a["t"][i_min]) if margin.size else None,
         "estimates": estimate_errors(rec) if rec.info["cameras"] else None,
         "control": control_stats(rec),
         "constraints": constraint_stats(rec),
         "contacts": contacts["episodes"],
         "contact_jitter_mm": contacts["contact_jitter_mm"],
-        "wall_time_s": _num(rec.wall_time_s),
-        "wall_time_split_s": {k: _num(v) for k, v in rec.timing_s.items()},
+        "wall_time_s": json_float(rec.wall_time_s),
+        "wall_time_split_s": {k: json_float(v) for k, v in rec.timing_s.items()},
     }
     if rec.scene.has_surface:
         out["surface"] = {

@@ -31,20 +31,16 @@ from collections.abc import Mapping
 from typing import Any, TextIO
 
 import numpy as np
+from hapticloud.core.studies.stats import summary
 
 from .process import ControlProcess
 
 TARGETS = {"tick_us_p99": 400.0, "misses_per_10k": 1.0}
 
 
-def _stats(a: np.ndarray) -> dict[str, float]:
-    if a.size == 0:
-        return {"median": float("nan"), "p99": float("nan"), "max": float("nan")}
-    return {
-        "median": round(float(np.median(a)), 1),
-        "p99": round(float(np.percentile(a, 99)), 1),
-        "max": round(float(a.max()), 1),
-    }
+def _stats(a: np.ndarray) -> dict[str, float | int | None]:
+    """Median, p99 and max (µs, 0.1 µs)."""
+    return summary(a, percentiles=(99,), count=False, digits=1)
 
 
 class _Perception:

@@ -185,6 +185,11 @@ class DeadlineLoop:
         return self._t0
 
     @property
+    def misses(self) -> int:
+        """Misses so far (late starts and overruns; see :class:`DeadlineStats`)."""
+        return self._misses
+
+    @property
     def tick(self) -> int:
         """Index of the current (last started) tick."""
         return self._k

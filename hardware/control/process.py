@@ -500,11 +500,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                     heartbeat_age_s=fb.oldest_heartbeat_age_s,
                 )
                 apply_reaction(machine, reaction, t)
-                if reset_pending and wd.torque_off_cleared:
-                    ok, why = wd.reset(t)
-                    machine.reset(t, cleared=ok, reason=why)
-                    reset_pending = False
-                elif reset_pending and fault_reset_ticks == 0:
+                # Decided once the causes cleared, or (refused) when the reset ticks are spent.
+                if reset_pending and (wd.torque_off_cleared or fault_reset_ticks == 0):
                     ok, why = wd.reset(t)
                     machine.reset(t, cleared=ok, reason=why)
                     reset_pending = False
@@ -640,7 +637,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                                 tick_us,
                                 tick_max,
                                 rate,
-                                dl._misses,
+                                dl.misses,
                                 dropped,
                                 load,
                                 tuple(pending_events[-_MAX_EVENTS_PER_SNAPSHOT:]),

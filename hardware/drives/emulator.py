@@ -51,6 +51,7 @@ import numpy as np
 from hapticloud.core.config import StageConfig, param
 from hapticloud.core.errors import InputError
 from hapticloud.core.robot.model import RobotModel
+from hapticloud.core.validation import read_only
 from numpy.typing import ArrayLike, NDArray
 
 from . import codec
@@ -175,11 +176,6 @@ class EmulatorState:
     nmt: tuple[NmtState, ...]
     syncs: int
     commands_missed: tuple[int, ...]
-
-
-def _readonly(arr: NDArray) -> NDArray:
-    arr.setflags(write=False)
-    return arr
 
 
 class DriveEmulator(can.Listener):
@@ -334,10 +330,10 @@ class DriveEmulator(can.Listener):
         with self._lock:
             return EmulatorState(
                 t=self._t0 + self._steps * self._dt,
-                q=_readonly(self._q.copy()),
-                qd=_readonly(self._qd.copy()),
-                tau_nm=_readonly(np.array([self._torque(i) for i in range(self._n)])),
-                target_nm=_readonly(np.array(self._target)),
+                q=read_only(self._q.copy()),
+                qd=read_only(self._qd.copy()),
+                tau_nm=read_only(np.array([self._torque(i) for i in range(self._n)])),
+                target_nm=read_only(np.array(self._target)),
                 state=tuple(self._state),
                 nmt=tuple(self._nmt),
                 syncs=self._syncs,

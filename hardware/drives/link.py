@@ -32,6 +32,7 @@ from typing import Any, NamedTuple
 import can
 import numpy as np
 from hapticloud.core.errors import ConfigError, DriveError, InputError
+from hapticloud.core.validation import read_only
 from numpy.typing import ArrayLike, NDArray
 
 from . import codec
@@ -48,11 +49,6 @@ _FEEDBACK, _HEARTBEAT, _EMCY = 1, 2, 3
 _MAX_FRAMES_PER_POLL = 512
 _ENABLE_MASK = 0x8F
 _FAULT_BIT = int(p.Statusword.FAULT)  # bits that make up the "enable operation" command
-
-
-def _readonly(arr: NDArray) -> NDArray:
-    arr.setflags(write=False)
-    return arr
 
 
 class LinkCounters(NamedTuple):
@@ -117,7 +113,7 @@ def _array(name: str, dtype: Any = np.float64) -> Any:
         cache = self._cache
         arr = cache.get(name)
         if arr is None:
-            arr = cache[name] = _readonly(np.array(self._raw[name], dtype=dtype))
+            arr = cache[name] = read_only(np.array(self._raw[name], dtype=dtype))
         return arr
 
     get.__name__ = name
@@ -216,8 +212,8 @@ class DriveFeedback:
         init(self, "seq", seq)
         init(self, "stamp", stamp)
         init(self, "cycle", cycle)
-        init(self, "position_rad", _readonly(np.array(position_rad)))
-        init(self, "velocity_rad_s", _readonly(np.array(velocity_rad_s)))
+        init(self, "position_rad", read_only(np.array(position_rad)))
+        init(self, "velocity_rad_s", read_only(np.array(velocity_rad_s)))
         init(self, "state", state)
         init(self, "nmt_state", nmt_state)
         init(self, "bus_off", bus_off)
@@ -285,7 +281,7 @@ class DriveFeedback:
     @property
     def faulted(self) -> NDArray[np.bool_]:
         """Statusword fault bit per drive (FAULT or FAULT REACTION ACTIVE)."""
-        return _readonly((self.statusword & p.Statusword.FAULT) != 0)
+        return read_only((self.statusword & p.Statusword.FAULT) != 0)
 
     @property
     def any_fault(self) -> bool:
@@ -296,7 +292,7 @@ class DriveFeedback:
     def enabled(self) -> NDArray[np.bool_]:
         """Drives in OPERATION ENABLED with fresh enough feedback."""
         ok = np.array([s is DriveState.OPERATION_ENABLED for s in self.state])
-        return _readonly(ok & ~self.stale)
+        return read_only(ok & ~self.stale)
 
     @property
     def all_enabled(self) -> bool:
@@ -422,7 +418,7 @@ class DriveLink:
     @property
     def torque_limits(self) -> FloatArray:
         """Torque limits in force (N m): the configured ones, or lower ones set at run time."""
-        return _readonly(np.array(self._limit))
+        return read_only(np.array(self._limit))
 
     @property
     def counters(self) -> LinkCounters:

@@ -44,6 +44,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+from hapticloud.core.studies.stats import json_float, summary
 
 __all__ = ["HARDWARE_MODE", "run_session", "summary_lines"]
 
@@ -53,26 +54,6 @@ HARDWARE_MODE = "through the hardware layer: control process + emulated drives"
 _READY = 2
 _ENABLED = 3
 _STATE_NAMES = {0: "disconnected", 1: "connected", 2: "ready", 3: "enabled", 4: "fault", 5: "estop"}
-
-
-def _num(x: float | None) -> float | None:
-    """JSON-safe float: ``None`` for NaN / inf / missing."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def _pcts(values: np.ndarray, scale: float = 1.0) -> dict[str, float | None]:
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    if not v.size:
-        return {"median": None, "p99": None, "max": None}
-    return {
-        "median": _num(np.median(v) * scale),
-        "p99": _num(np.percentile(v, 99) * scale),
-        "max": _num(v.max() * scale),
-    }
 
 
 class _HipSampler:
@@ -111,6 +92,11 @@ def _perception_main(
             conn.send(("error", traceback.format_exc()))
         except Exception:
             pass
+
+
+def _spread(values: Any, scale: float = 1.0) -> dict[str, float | int | None]:
+    """Median, p99 and max of the finite values (JSON-safe)."""
+    return summary(values, scale, percentiles=(99,), count=False)
 
 
 def _perception(
@@ -204,8 +190,8 @@ def _perception(
                 "valid": valid,
                 "admitted": admitted,
                 "skipped_frames": skipped,
-                "perception_ms": _pcts(np.array(perception_ms)),
-                "capture_to_send_ms": _pcts(np.array(delivery_ms)),
+                "perception_ms": _spread(np.array(perception_ms)),
+                "capture_to_send_ms": _spread(np.array(delivery_ms)),
             },
         )
     )
@@ -455,13 +441,13 @@ def _report(
         gaps = np.diff(ts)
         truth.update(
             {
-                "sample_rate_hz": _num(margins.size / max(ts[-1] - ts[0], 1e-9)),
-                "largest_gap_ms": _num(gaps.max() * 1e3) if gaps.size else None,
-                "min_margin_m": _num(margins[k]),
-                "t_min_margin_s": _num(ts[k]),
+                "sample_rate_hz": json_float(margins.size / max(ts[-1] - ts[0], 1e-9)),
+                "largest_gap_ms": json_float(gaps.max() * 1e3) if gaps.size else None,
+                "min_margin_m": json_float(margins[k]),
+                "t_min_margin_s": json_float(ts[k]),
                 "hip_at_min_m": [float(x) for x in hips[on][k]],
-                "max_penetration_m": _num(max(0.0, -float(margins[k]))),
-                "min_center_margin_m": _num(margins[k] + r),
+                "max_penetration_m": json_float(max(0.0, -float(margins[k]))),
+                "min_center_margin_m": json_float(margins[k] + r),
             }
         )
         # The logged d_proj at the sample times: what the controller believed vs the truth.
@@ -469,7 +455,7 @@ def _report(
         d_at = np.interp(t[on], lt, np.where(np.isfinite(d_proj), d_proj, np.nan))
         err = d_at - margins
         near = np.isfinite(err) & (margins < 0.05)
-        truth["d_proj_minus_true_mm_near"] = _pcts(np.abs(err[near]), 1e3) if near.any() else None
+        truth["d_proj_minus_true_mm_near"] = _spread(np.abs(err[near]), 1e3) if near.any() else None
         step = max(1, margins.size // 2000)
         truth["series"] = {
             "t_s": [round(float(x), 4) for x in ts[::step]],
@@ -482,9 +468,9 @@ def _report(
         {
             "cameras": [c.spec.name for c in cams],
             "models": [c.spec.model for c in cams],
-            "fused_valid_fraction": _num(np.mean(fused_valid)) if fused_valid else None,
+            "fused_valid_fraction": json_float(np.mean(fused_valid)) if fused_valid else None,
             "fused_valid_ever": any(fused_valid),
-            "estimate_age_ms": _pcts(est_age, 1e3),
+            "estimate_age_ms": _spread(est_age, 1e3),
             "snapshots": len(snaps),
         }
     )
@@ -512,13 +498,13 @@ def _report(
         "torque_before_enable_nm": float(np.abs(tau[:first_on]).max()) if first_on else 0.0,
         "control": {
             "misses": int(deadline.get("misses", 0)),
-            "misses_per_10k": _num(deadline.get("misses_per_10k")),
+            "misses_per_10k": json_float(deadline.get("misses_per_10k")),
             "overruns": deadline.get("overruns"),
             "skipped": deadline.get("skipped"),
-            "tick_us": _pcts(log["tick_us"]),
-            "tick_us_enabled": _pcts(log["tick_us"][enabled]),
-            "body_us": _pcts(log["body_us"]),
-            "lateness_us": _pcts(log["lateness_us"]),
+            "tick_us": _spread(log["tick_us"]),
+            "tick_us_enabled": _spread(log["tick_us"][enabled]),
+            "body_us": _spread(log["body_us"]),
+            "lateness_us": _spread(log["lateness_us"]),
             "deadline": {k: v for k, v in deadline.items() if not isinstance(v, str)},
             "link_counters": dict(result["link_counters"]),
             "link_events": [list(e) for e in result["link_events"][-20:]],
@@ -533,11 +519,11 @@ def _report(
             },
         },
         "haptics": {
-            "min_d_proj_m": _num(np.nanmin(d_proj)) if np.isfinite(d_proj).any() else None,
+            "min_d_proj_m": json_float(np.nanmin(d_proj)) if np.isfinite(d_proj).any() else None,
             "approach_mps": {
-                "max": _num(v_pos.max()) if v_pos.size else None,
-                "p99": _num(np.percentile(v_pos, 99)) if v_pos.size else None,
-                "median": _num(np.median(v_pos)) if v_pos.size else None,
+                "max": json_float(v_pos.max()) if v_pos.size else None,
+                "p99": json_float(np.percentile(v_pos, 99)) if v_pos.size else None,
+                "median": json_float(np.median(v_pos)) if v_pos.size else None,
             },
             "approach_capped_ticks": int(capped.sum()),
         },
