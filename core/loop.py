@@ -83,6 +83,8 @@ _TIGHTER, _POS_TIGHTER = 8, 16
 #: A row counts as binding when ``G x`` is within this of ``h`` (m/s², solver tolerance scale).
 BINDING_TOL = 1e-6
 
+_any = np.logical_or.reduce
+
 _ZERO3 = np.zeros(3)
 _ZERO3.setflags(write=False)
 _UNIT_Z = np.array([0.0, 0.0, 1.0])
@@ -173,6 +175,18 @@ class Wall(NamedTuple):
     def closest(self, x: FloatArray) -> FloatArray:
         """The plane's point closest to ``x``."""
         return x - (self.normal @ (x - self.point)) * self.normal
+
+
+class _Limits(NamedTuple):
+    """Levels 1-2 bounds of the exact shortcut, per controller (see ``_shortcut_limits``)."""
+
+    tau: list[float]
+    horizon: float
+    half_horizon_sq: float
+    q_hi: list[float]
+    q_lo: list[float]
+    v_horizon: float
+    v: list[float]
 
 
 class TickResult(NamedTuple):
@@ -293,7 +307,11 @@ class HapticLoop:
         self._h = np.zeros(capacity)
         self._kind = [0] * capacity
         self._m_prev = 0
-        self._wall_surfaces = [SurfacePoint(w.point, w.normal, _ZERO3, w.part) for w in self.walls]
+        # As float arrays (a Wall built directly may hold lists): the tick's products need them.
+        self._wall_surfaces = [
+            SurfacePoint(_float_array(w.point), _float_array(w.normal), _ZERO3, w.part)
+            for w in self.walls
+        ]
         self._solved_last = False
         self._held: SurfacePoint | None = None
         self._held_t = -math.inf
@@ -304,6 +322,12 @@ class HapticLoop:
         #: constraint's own bound; ``None``: none. A session's watchdog sets it to v_min while it
         #: holds a surface it can no longer see (a stale camera or estimate).
         self.approach_limit_mps: float | None = None
+        self._limits: _Limits | None = None
+        self._limits_for: HierarchicalController | None = None
+        from .robot import RobotModel  # pinocchio: loaded by the model's owner already
+
+        # Only the shipped model's state is known to be float arrays of the right shapes.
+        self._trusted = isinstance(robot, RobotModel)
 
     def configure(self, haptics: HapticsConfig) -> None:
         """Use ``haptics`` from the next tick on (a few µs: tuning while the loop runs)."""
@@ -410,8 +434,12 @@ class HapticLoop:
         fused_ok = fused is not None and fused.valid
         region = self.fused_region
         if fused_ok:
-            primary = SurfacePoint(fused.centroid, fused.normal, fused.velocity, region)
-            self._held = SurfacePoint(fused.centroid, fused.normal, _ZERO3, region)
+            centroid, normal, velocity = fused.centroid, fused.normal, fused.velocity
+            if type(fused) is not FusedSurface:  # the fusion's own are float arrays already
+                centroid, normal = _float_array(centroid), _float_array(normal)
+                velocity = _float_array(velocity)
+            primary = SurfacePoint(centroid, normal, velocity, region)
+            self._held = SurfacePoint(centroid, normal, _ZERO3, region)
             self._held_t = t
         elif self._held is not None and t - self._held_t <= self.config.hold_lost_surface_s:
             # A surface does not vanish because the cameras lost it (out of the workspace
@@ -454,9 +482,9 @@ class HapticLoop:
                 if factor is None:
                     factor = _cholesky(M)
                 w, _ = lapack.dpotrs(factor, hs.J_c, lower=False)
-                mu = float(hs.J_c @ w)
+                mu = float(hs.J_c.dot(w))
                 np.negative(w, out=G[m, n:])
-                hv[m] = mu * self._force_limit[surface.body_region] - float(w @ h) + hs.Jdc_qd
+                hv[m] = mu * self._force_limit[surface.body_region] - float(w.dot(h)) + hs.Jdc_qd
                 kind[m] = FORCE
                 m += 1
         n_haptic = m
@@ -482,18 +510,23 @@ class HapticLoop:
         if out is None:
             rows = [Inequality(G[:m], hv[:m], "haptic")] if m else []
             motion = Equality(self._a_tau, h, "transparency") if cfg.transparent else None
-            out = self.controller.step(
+            # The controller's step without re-converting what the robot model validated (float
+            # arrays of the right shapes, dt checked in __init__); its checks on values stay.
+            step = self.controller._step_checked if self._trusted else self._step_public
+            out = step(
+                time.perf_counter(),
                 robot.q,
                 robot.qd,
                 M,
                 h,
                 self.dt,
-                hip_position=hip.position,
-                hip_jacobian=hip.jacobian,
-                hip_jdot_qd=hip.jdot_qd,
-                haptic_rows=rows,
-                motion=motion,
-                interaction_torque=tau_int,
+                hip.position,
+                hip.jacobian,
+                hip.jdot_qd,
+                rows,
+                (),
+                motion,
+                tau_int,
             )
             # Relaxed: a constraint bound (level 5 gave way), so the next tick likely solves too.
             self._solved_last = out.status is not ControlStatus.OK
@@ -523,6 +556,38 @@ class HapticLoop:
             out.clamped,
         )
 
+    def _step_public(
+        self,
+        t0: float,
+        q: FloatArray,
+        qd: FloatArray,
+        M: FloatArray,
+        h: FloatArray,
+        dt: float,
+        hip_position: FloatArray,
+        hip_jacobian: FloatArray,
+        hip_jdot_qd: FloatArray,
+        haptic_rows: list[Inequality],
+        wall_rows: tuple[()],
+        motion: Equality | None,
+        tau_int: FloatArray | None,
+    ) -> ControlOutput:
+        """The controller's checked :meth:`~HierarchicalController.step`, for any other robot."""
+        return self.controller.step(
+            q,
+            qd,
+            M,
+            h,
+            dt,
+            hip_position=hip_position,
+            hip_jacobian=hip_jacobian,
+            hip_jdot_qd=hip_jdot_qd,
+            haptic_rows=haptic_rows,
+            wall_rows=wall_rows,
+            motion=motion,
+            interaction_torque=tau_int,
+        )
+
     def _shortcut(
         self,
         hip: HipState,
@@ -543,46 +608,55 @@ class HapticLoop:
         """
         t0 = time.perf_counter()
         ctrl = self.controller
-        n = self.n_joints
-        q, qd = self.robot.q, hip.qd
+        lim = self._limits if self._limits_for is ctrl else self._shortcut_limits(ctrl)
+        qd = hip.qd
         M, h = hip.mass_matrix, hip.nonlinear_effects
-        qdd = np.zeros(n) if qdd5 is None else qdd5
+        qdd = np.zeros(self.n_joints) if qdd5 is None else qdd5
         if self.config.transparent:
             tau = h.copy()
         else:
-            tau = M @ qdd + h
+            tau = M.dot(qdd) + h
             if tau_int is not None:
                 tau -= ctrl.config.equation_of_motion.interaction_torque_scale * tau_int
-        if not math.isfinite(float(qdd.sum() + tau.sum())):
+        # Finite sums of squares prove every entry finite (one call each); only when they are
+        # not (a NaN, an inf, or squares overflowing) is the sum itself looked at.
+        if not math.isfinite(qdd.dot(qdd) + tau.dot(tau)) and not math.isfinite(
+            float(qdd.sum() + tau.sum())
+        ):
             return None  # the controller reports the fault
         x = np.concatenate((qdd, tau))
         # The haptic rows first: in contact they are the ones that fail, and they are built.
+        # The comparisons run on Python floats: a handful of numbers, where each numpy call
+        # (~1 us with the wrappers) would cost more than the arithmetic; the bounds are the same
+        # IEEE operations in the same order, so every decision is the one numpy would make.
         if m:
-            Gm, hm = self._G[:m], self._h[:m]
-            if np.any(Gm @ x > hm + _SHORTCUT_TOL * (1.0 + np.abs(hm))):
-                return None
-        # Levels 1-3 checked from the tasks' definitions on 6-vectors (cheaper than building
+            tol = _SHORTCUT_TOL
+            for gx, hj in zip(self._G[:m].dot(x).tolist(), self._h[:m].tolist(), strict=True):
+                if gx > hj + tol * (1.0 + abs(hj)):
+                    return None
+        # Levels 1-2 checked from the tasks' definitions, joint by joint (cheaper than building
         # their rows): |tau| <= scale tau_max; q + T qd + T^2/2 qdd within the position limits;
-        # |qd + T_v qdd| <= v_max; each fixed wall's prediction.
-        dt = self.dt
-        tl = ctrl.torque_limit
-        if np.any(np.abs(tau) > tl.config.scale * tl.tau_max * (1.0 + _SHORTCUT_TOL)):
-            return None
-        pl = ctrl.position_limit
-        T = pl.horizon_s(dt)
-        q_pred = q + T * qd + (0.5 * T * T) * qdd
-        margin = pl.config.margin_rad
-        if np.any(q_pred > pl.q_max - margin + _SHORTCUT_TOL) or np.any(
-            q_pred < pl.q_min + margin - _SHORTCUT_TOL
+        # |qd + T_v qdd| <= v_max; then each fixed wall's prediction.
+        T, half_T2, Tv = lim.horizon, lim.half_horizon_sq, lim.v_horizon
+        for tau_i, q_i, qd_i, qdd_i, tau_max, q_hi, q_lo, v_max in zip(
+            tau.tolist(),
+            self.robot.q.tolist(),
+            qd.tolist(),
+            qdd.tolist(),
+            lim.tau,
+            lim.q_hi,
+            lim.q_lo,
+            lim.v,
+            strict=True,
         ):
-            return None
-        vl = ctrl.velocity_limit
-        Tv = max(vl.config.horizon_s, dt)
-        if np.any(np.abs(qd + Tv * qdd) > vl.v_max + _SHORTCUT_TOL):
-            return None
+            if abs(tau_i) > tau_max:
+                return None
+            q_pred = q_i + T * qd_i + half_T2 * qdd_i
+            if q_pred > q_hi or q_pred < q_lo or abs(qd_i + Tv * qdd_i) > v_max:
+                return None
         if ctrl.walls is not None:
-            w = ctrl.walls.rows(hip.position, hip.jacobian, hip.jdot_qd, qd, dt)
-            if w.h.shape[0] and np.any(w.G @ x > w.h + _SHORTCUT_TOL * (1.0 + np.abs(w.h))):
+            w = ctrl.walls.rows(hip.position, hip.jacobian, hip.jdot_qd, qd, self.dt)
+            if w.h.shape[0] and _any(w.G @ x > w.h + _SHORTCUT_TOL * (1.0 + np.abs(w.h))):
                 return None
         return ControlOutput(
             tau,
@@ -594,6 +668,29 @@ class HapticLoop:
             (time.perf_counter() - t0) * 1e6,
             "",
         )
+
+    def _shortcut_limits(self, ctrl: HierarchicalController) -> _Limits:
+        """The bounds :meth:`_shortcut` compares with, for ``ctrl`` (rebuilt when it changes).
+
+        Each is the very expression the check used to evaluate per tick (same rounding).
+        """
+        dt = self.dt
+        tl = ctrl.torque_limit
+        pl = ctrl.position_limit
+        T = pl.horizon_s(dt)
+        margin = pl.config.margin_rad
+        vl = ctrl.velocity_limit
+        lim = _Limits(
+            (tl.config.scale * tl.tau_max * (1.0 + _SHORTCUT_TOL)).tolist(),
+            T,
+            0.5 * T * T,
+            (pl.q_max - margin + _SHORTCUT_TOL).tolist(),
+            (pl.q_min + margin - _SHORTCUT_TOL).tolist(),
+            max(vl.config.horizon_s, dt),
+            (vl.v_max + _SHORTCUT_TOL).tolist(),
+        )
+        self._limits, self._limits_for = lim, ctrl
+        return lim
 
     def last_binding(self) -> int:
         """Which constraints bound the last tick's solution (bits as ``TickResult.rows``).
@@ -684,7 +781,7 @@ class HapticLoop:
         if not len(tangents):
             return m
         k = tangents.shape[0]
-        gs = tangents @ J
+        gs = tangents.dot(J)
         G, hv, kind = self._G, self._h, self._kind
         G[m : m + k, :n] = gs
         np.negative(gs, out=G[m + k : m + 2 * k, :n])
@@ -694,11 +791,16 @@ class HapticLoop:
         if qdd5 is None:
             hv[m : m + 2 * k] = TANGENT_BAND_M_S2
         else:
-            a = gs @ qdd5
+            a = gs.dot(qdd5)
             np.add(a, TANGENT_BAND_M_S2, out=hv[m : m + k])
             np.subtract(TANGENT_BAND_M_S2, a, out=hv[m + k : m + 2 * k])
         kind[m : m + 2 * k] = [0] * (2 * k)
         return m + 2 * k
+
+
+def _float_array(value: ArrayLike) -> FloatArray:
+    """``value`` as a float64 array (itself when it already is one)."""
+    return np.asarray(value, dtype=np.float64)
 
 
 def _cholesky(M: FloatArray) -> FloatArray:
@@ -757,14 +859,14 @@ def _haptic_state(hip: HipState, surface: SurfacePoint) -> HapticState:
     a non-finite result still goes through the checked function, which names the culprit.
     """
     n = surface.normal
-    J_c = n @ hip.jacobian
-    d_dot_robot = float(J_c @ hip.qd)
+    J_c = n.dot(hip.jacobian)
+    d_dot_robot = float(J_c.dot(hip.qd))
     state = HapticState(
-        float((hip.position - surface.centroid) @ n) - hip.radius_m,
+        float((hip.position - surface.centroid).dot(n)) - hip.radius_m,
         J_c,
-        float(n @ hip.jdot_qd),
+        float(n.dot(hip.jdot_qd)),
         d_dot_robot,
-        -float(n @ surface.velocity),
+        -float(n.dot(surface.velocity)),
         hip.qd,
         n,
         surface.velocity,

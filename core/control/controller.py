@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..config import StageConfig, nested, param
 from ..errors import InputError
-from .hierarchy import HierarchicalSolver, HierarchyConfig, SolveStatus
+from .hierarchy import DAQP_INF, HierarchicalSolver, HierarchyConfig, SolveStatus, StackedLevels
 from .rows import Equality, Inequality
 from .tasks import (
     EquationOfMotion,
@@ -57,6 +57,8 @@ from .tasks import (
     MinimizeAccelerationConfig,
     TorqueLimit,
     TorqueLimitConfig,
+    _array,
+    _period,
 )
 
 FloatArray = NDArray[np.float64]
@@ -73,6 +75,12 @@ LEVEL_NAMES: tuple[str, ...] = (
 
 # Torque beyond the limit by less than this (relative) is solver drift, not clamping.
 _CLAMP_RTOL = 1e-6
+
+# The reductions themselves: the ``a.sum()`` / ``a.max()`` / ``a.all()`` methods each add a
+# Python wrapper call (~1 us) on the 800 Hz path.
+_add_reduce = np.add.reduce
+_max_reduce = np.maximum.reduce
+_and_reduce = np.logical_and.reduce
 
 
 class ControlStatus(StrEnum):
@@ -150,6 +158,34 @@ class ControlOutput(NamedTuple):
     clamped: bool
     step_us: float = 0.0
     fault: str = ""
+
+
+def _finite_total(arrays: tuple[FloatArray | None, ...]) -> bool:
+    """Whether the sum of every entry of the ``arrays`` (``None`` skipped) is finite.
+
+    A finite sum of squares proves every entry finite and far from overflow (one dot product
+    per array instead of a sum through its wrapper); otherwise the sum itself decides.
+    """
+    squares = 0.0
+    for arr in arrays:
+        if arr is not None:
+            flat = arr.ravel()
+            squares += flat.dot(flat)
+    if math.isfinite(squares):
+        return True
+    total = 0.0
+    for arr in arrays:
+        if arr is not None:
+            total += _add_reduce(arr, None)
+    return math.isfinite(total)
+
+
+def _real(arr: NDArray) -> FloatArray:
+    """``arr`` as float64 by the solver's own rule (what stacking rows would accept)."""
+    try:
+        return np.concatenate((arr,), dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("task rows: expected real numbers") from None
 
 
 def _nonfinite(**arrays: Any) -> list[str]:
@@ -240,6 +276,15 @@ class HierarchicalController:
         self._zero = np.zeros(n)
         self._minus_tau_max = -self.tau_max
         self._clamp_threshold = self.tau_max * (1.0 + _CLAMP_RTOL)
+        # Levels 1 and 2 always have the same 7 n rows (dynamics, torque, position and velocity
+        # limits): their constant coefficients live in a buffer that each step only updates.
+        if cfg.torque_limit_level == "dynamics":
+            self._o_tau, self._o_pos, self._o_vel = n, 3 * n, 5 * n
+            self._head_counts = (3 * n, 4 * n)
+        else:
+            self._o_pos, self._o_vel, self._o_tau = n, 3 * n, 5 * n
+            self._head_counts = (n, 6 * n)
+        self._allocate(7 * n + 2 * n + 8 + (0 if self.walls is None else self.walls.n_walls))
 
     @classmethod
     def from_robot(
@@ -335,15 +380,48 @@ class HierarchicalController:
             hip_jdot_qd = np.asarray(hip_jdot_qd, dtype=np.float64)
         if interaction_torque is not None:
             interaction_torque = np.asarray(interaction_torque, dtype=np.float64)
+        return self._step_checked(
+            t0,
+            q,
+            qd,
+            M,
+            h,
+            dt_value,
+            hip_position,
+            hip_jacobian,
+            hip_jdot_qd,
+            haptic_rows,
+            wall_rows,
+            motion,
+            interaction_torque,
+        )
+
+    def _step_checked(
+        self,
+        t0: float,
+        q: FloatArray,
+        qd: FloatArray,
+        M: FloatArray,
+        h: FloatArray,
+        dt_value: float,
+        hip_position: FloatArray | None,
+        hip_jacobian: FloatArray | None,
+        hip_jdot_qd: FloatArray | None,
+        haptic_rows: Sequence[Inequality],
+        wall_rows: Sequence[Inequality],
+        motion: Equality | None,
+        interaction_torque: FloatArray | None,
+    ) -> ControlOutput:
+        """:meth:`step` after its argument conversion and shape checks (``t0``: its start).
+
+        For a caller whose arrays are already float64 of the right shapes and ``dt`` a positive
+        float (the haptic loop: the robot model's validated state); every check on values (NaN,
+        inf) and on the rows handed in still happens here.
+        """
         # q, qd, M, h and tau_int always enter rows (joint limits, dynamics) and the solver
         # rejects non-finite rows; the HIP enters rows only while a wall is near, so it gets a
         # look of its own (a sum is finite only if every entry is).
-        total = 0.0
-        for extra in (hip_position, hip_jacobian, hip_jdot_qd):
-            if extra is not None:
-                total += extra.sum()
-
-        if not math.isfinite(total):
+        if not _finite_total((hip_position, hip_jacobian, hip_jdot_qd)):
             return self._non_finite_fault(
                 t0,
                 q,
@@ -359,7 +437,7 @@ class HierarchicalController:
                 motion,
             )
 
-        levels = self._levels(
+        levels = self._stacked(
             q,
             qd,
             M,
@@ -395,20 +473,20 @@ class HierarchicalController:
             )
         # The dynamics are the top level and always feasible (qdd is free); DAQP holds them only
         # up to drift when a lower level is badly violated, so rebuild tau from qdd exactly.
-        qdd = result.x[:n].copy()
-        tau_raw = M @ qdd + h
+        qdd = result.x[: self.n_joints].copy()
+        tau_raw = M.dot(qdd) + h
         if interaction_torque is not None:
             tau_raw -= self.config.equation_of_motion.interaction_torque_scale * interaction_torque
         tau = np.minimum(np.maximum(tau_raw, self._minus_tau_max), self.tau_max)
         # The solver never returns a non-finite x; this sum is the last line of defence.
-        if not math.isfinite(tau.sum() + qdd.sum()):
+        if not _finite_total((tau, qdd)):
             return self._fault("non-finite solution", t0)
         slack, satisfied = result.level_slack, result.level_satisfied
         clamped = False
-        if (np.abs(tau_raw) - self.tau_max).max() > 0.0:
+        if _max_reduce(np.abs(tau_raw) - self.tau_max) > 0.0:
             # Keep qdd the model's answer to the torque actually sent; report only real clamping.
             qdd = self._predict(M, h, tau, interaction_torque)
-            clamped = bool((np.abs(tau_raw) - self._clamp_threshold).max() > 0.0)
+            clamped = bool(_max_reduce(np.abs(tau_raw) - self._clamp_threshold) > 0.0)
             if clamped:  # the levels are met differently now: report what is sent
                 slack, satisfied = self.solver.evaluate(levels, np.concatenate([qdd, tau]))
         # Level 1 holds by construction (tau rebuilt from qdd, then clamped). Level 6 only
@@ -416,10 +494,124 @@ class HierarchicalController:
         # does not make a step relaxed.
         slack = slack.copy()
         slack[0] = 0.0
-        status = ControlStatus.OK if satisfied[1:5].all() else ControlStatus.RELAXED
+        status = ControlStatus.OK if _and_reduce(satisfied[1:5]) else ControlStatus.RELAXED
         return ControlOutput(
             tau, qdd, status, slack, result.solve_us, clamped, (time.perf_counter() - t0) * 1e6
         )
+
+    def _allocate(self, capacity: int) -> None:
+        """Row buffers for ``capacity`` rows, with the constant rows of levels 1 and 2 filled."""
+        n = self.n_joints
+        A = np.zeros((capacity, 2 * n))
+        bu = np.zeros(capacity)
+        bl = np.full(capacity, -DAQP_INF)
+        A[:n, n:] = self.eom._minus_eye
+        torque = self.torque_limit.rows()
+        A[self._o_tau : self._o_tau + 2 * n] = torque.G
+        bu[self._o_tau : self._o_tau + 2 * n] = torque.h
+        A[self._o_pos : self._o_pos + 2 * n] = self.position_limit._G
+        A[self._o_vel : self._o_vel + 2 * n] = self.velocity_limit._G
+        self._A, self._bu, self._bl = A, bu, bl
+
+    def _stacked(
+        self,
+        q: FloatArray,
+        qd: FloatArray,
+        M: FloatArray,
+        h: FloatArray,
+        dt: float,
+        hip_position: ArrayLike | None,
+        hip_jacobian: ArrayLike | None,
+        hip_jdot_qd: ArrayLike | None,
+        haptic_rows: Sequence[Inequality],
+        wall_rows: Sequence[Inequality],
+        motion: Equality | None,
+        interaction_torque: ArrayLike | None,
+    ) -> StackedLevels:
+        """The rows of :meth:`_levels`, written straight into the solver's stacked form.
+
+        Same values, same order, same checks (and messages) as building the row objects and
+        stacking them (``tests/test_controller.py`` compares both); the levels as row objects
+        are built only if something asks for them (the fallback cascade).
+        """
+        n = self.n_joints
+        solver = self.solver
+        # The tasks' own argument checks, in the order _levels meets them.
+        tau_int = None
+        if interaction_torque is not None:
+            tau_int = _array(interaction_torque, (n,), "interaction_torque")
+        level3: list[tuple[NDArray, NDArray, bool]] = []
+        if self.walls is not None:
+            walls = self.walls.rows(hip_position, hip_jacobian, hip_jdot_qd, qd, dt)
+            level3.append((walls.G, walls.h, False))
+        rest = self.min_acceleration.rows(qd)
+        level3 += [solver._task_arrays(task, 2) for task in wall_rows]
+        level4 = [solver._task_arrays(task, 3) for task in haptic_rows]
+        if motion is None:
+            lower = [[(rest.A, rest.b, True)], []]
+        else:
+            lower = [[solver._task_arrays(motion, 4)], [(rest.A, rest.b, True)]]
+        head = self._head_counts[0] + self._head_counts[1]
+        counts = [*self._head_counts]
+        rows = head
+        for level in (level3, level4, *lower):
+            count = sum([vec.shape[0] for _, vec, _ in level])
+            counts.append(count)
+            rows += count
+        if rows > self._A.shape[0]:
+            self._allocate(2 * rows)
+        A, bu, bl = self._A, self._bu, self._bl
+        # Level 1: M qdd - tau = tau_int - h.
+        A[:n, :n] = M
+        b = np.negative(h, out=bu[:n])
+        if tau_int is not None:
+            b += self.config.equation_of_motion.interaction_torque_scale * tau_int
+        bl[:n] = b
+        # Level 2: 2/T^2 (limit - q - T qd) for the positions, (v_max -+ qd)/T for the speeds.
+        pl = self.position_limit
+        T = pl.horizon_s(dt)
+        predicted = q + T * qd
+        o = self._o_pos
+        np.subtract(pl._upper, predicted, out=bu[o : o + n])
+        np.subtract(predicted, pl._lower, out=bu[o + n : o + 2 * n])
+        bu[o : o + 2 * n] *= 2.0 / (T * T)
+        vl = self.velocity_limit
+        T = max(vl.config.horizon_s, _period(dt))
+        o = self._o_vel
+        np.subtract(vl.v_max, qd, out=bu[o : o + n])
+        np.add(vl.v_max, qd, out=bu[o + n : o + 2 * n])
+        bu[o : o + 2 * n] /= T
+        # Levels 3-6 follow in order (their row counts change from tick to tick).
+        r = head
+        for level in (level3, level4, *lower):
+            for mat, vec, eq in level:
+                k = vec.shape[0]
+                if not k:
+                    continue
+                if mat.dtype != np.float64 or vec.dtype != np.float64:
+                    mat, vec = _real(mat), _real(vec)
+                A[r : r + k] = mat
+                bu[r : r + k] = vec
+                bl[r : r + k] = vec if eq else -DAQP_INF
+                r += k
+
+        def build() -> list[list[Equality | Inequality]]:
+            return self._levels(
+                q,
+                qd,
+                M,
+                h,
+                dt,
+                hip_position,
+                hip_jacobian,
+                hip_jdot_qd,
+                haptic_rows,
+                wall_rows,
+                motion,
+                interaction_torque,
+            )
+
+        return StackedLevels(A[:r], bu[:r], bl[:r], counts, build)
 
     def _levels(
         self,

@@ -145,13 +145,23 @@ class PolyFit:
         """Centroid (m), unit normal and centroid velocity (m/s) at time ``t`` (s)."""
         scale = self.scale_s
         tau = (t - self.t_ref) / scale
-        out = []
-        rate = []
-        for a0, a1, a2 in self.coeffs:
-            out.append(a0 + tau * (a1 + tau * a2))
-            rate.append((a1 + 2.0 * tau * a2) / scale)
-        normal = exp_map(self.ref_normal, (out[3], out[4], out[5]))
-        return (out[0], out[1], out[2]), normal, (rate[0], rate[1], rate[2])
+        # Unrolled (it runs every control tick); the normal's rates are not needed.
+        (c0, c1, c2), (d0, d1, d2), (e0, e1, e2), (f0, f1, f2), (g0, g1, g2), (k0, k1, k2) = (
+            self.coeffs
+        )
+        normal = exp_map(
+            self.ref_normal,
+            (f0 + tau * (f1 + tau * f2), g0 + tau * (g1 + tau * g2), k0 + tau * (k1 + tau * k2)),
+        )
+        return (
+            (c0 + tau * (c1 + tau * c2), d0 + tau * (d1 + tau * d2), e0 + tau * (e1 + tau * e2)),
+            normal,
+            (
+                (c1 + 2.0 * tau * c2) / scale,
+                (d1 + 2.0 * tau * d2) / scale,
+                (e1 + 2.0 * tau * e2) / scale,
+            ),
+        )
 
 
 def fit_window(
