@@ -557,9 +557,9 @@ def _worker_loop(
     stop: Any,
     feed: _SessionFeed | None = None,
 ) -> None:
-    from hapticloud.core.threads import limit_blas_threads
+    from hapticloud.core.threads import settle_numerics
 
-    limit_blas_threads(1)
+    settle_numerics(1)
     scene = build_scene(settings)
     world, cameras = scene.world, scene.cameras
     spec = scene_spec(settings.scene)

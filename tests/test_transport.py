@@ -53,6 +53,50 @@ def test_fast_path_matches_messages(pair):
     assert drives.read_frames() == []
 
 
+def test_a_burst_arrives_as_its_frames_in_order_on_both_read_paths(pair):
+    master, drives = pair
+    # Command + SYNC: two records in one datagram, together shorter than one 64-byte frame's
+    # record (a burst must not be mistaken for one frame by its size).
+    burst = [(0x200, bytes(range(48))), (0x080, b"\x07")]
+    master.send_frames(burst)
+    master.send_frame(0x201, b"\x01" * 12)
+    master.send_frames([(0x202, b"")] * 3)
+    assert drives.read_frames() == [
+        (0x200, bytes(range(48)), False),
+        (0x080, b"\x07", False),
+        (0x201, b"\x01" * 12, False),
+        (0x202, b"", False),
+        (0x202, b"", False),
+        (0x202, b"", False),
+    ]
+    master.send_frames(burst)
+    first = drives.recv(1.0)
+    # recv() holds the burst's rest; read_frames() hands it out first.
+    master.send_frame(0x203, b"\x02")
+    rest = drives.read_frames()
+    assert first is not None and (first.arbitration_id, bytes(first.data)) == burst[0]
+    assert first.is_fd and first.bitrate_switch
+    assert rest == [(0x080, b"\x07", False), (0x203, b"\x02", False)]
+    master.send_frames(burst)
+    got = [drives.recv(1.0), drives.recv(1.0)]
+    assert [(m.arbitration_id, bytes(m.data)) for m in got if m is not None] == burst
+    assert drives.recv(0.0) is None
+
+
+def test_a_truncated_burst_keeps_its_whole_frames(pair):
+    import os
+
+    from hapticloud.hardware.drives import transport
+
+    master, drives = pair
+    whole = transport._HEADER.pack(1.0, 0x200, 2, 3) + b"abc"
+    cut = transport._HEADER.pack(1.0, 0x080, 2, 8) + b"xy"  # says 8 bytes, has 2
+    os.write(master.fileno(), whole + cut)
+    assert drives.read_frames() == [(0x200, b"abc", False)]
+    with pytest.raises(ValueError):
+        master.send_frames([])
+
+
 def test_closed_peer_is_a_bus_error(pair):
     master, drives = pair
     drives.shutdown()
@@ -76,6 +120,38 @@ def test_link_and_emulator_cycle_over_the_pair(pair):
         fb = link.poll_feedback()
         assert fb.complete and fb.all_enabled
     assert link.counters.send_errors == 0
+
+
+def test_send_cycle_is_command_then_sync_with_the_same_counters(pair):
+    from hapticloud.hardware.drives.protocol import COMMAND_ID, SYNC_ID
+
+    master, drives = pair
+    cfg = DriveBusConfig()
+    # Two links over two pairs, one sending a cycle as a burst, one frame by frame.
+    a, b = socket_pair()
+    burst_link = DriveLink(master, cfg)
+    plain_bus = SocketPairBus(a)
+    plain_bus.send_frames = None  # type: ignore[method-assign]  # as a bus without bursts
+    plain_link = DriveLink(plain_bus, cfg)
+    other_drives = SocketPairBus(b)
+    try:
+        tau = np.array([1.0, -2.0, 0.5, 0.0, 3.0, -0.25])
+        words = (0x0F,) * 6
+        sent_burst = burst_link.send_cycle(tau, words)
+        sent_plain = plain_link.send_cycle(tau, words)
+        np.testing.assert_array_equal(sent_burst, sent_plain)
+        frames_burst, frames_plain = drives.read_frames(), other_drives.read_frames()
+        assert [f[0] for f in frames_burst] == [COMMAND_ID, SYNC_ID]
+        assert frames_burst == frames_plain
+        cb, cp = burst_link.counters._asdict(), plain_link.counters._asdict()
+        assert cb == cp and cb["commands_sent"] == 1 and cb["syncs_sent"] == 1
+        # A failed burst counts both frames as failed, like two failed sends.
+        drives.shutdown()
+        burst_link.send_cycle(tau, words)
+        assert burst_link.counters.send_errors == 2
+    finally:
+        plain_bus.shutdown()
+        other_drives.shutdown()
 
 
 def _write_in_child(name: str) -> None:

@@ -387,9 +387,9 @@ def main(
     """Run the study, print the tables, optionally write JSON. Returns the exit code."""
     if frames < SEGMENT_FRAMES:
         raise ConfigError(f"--frames = {frames}: must be at least {SEGMENT_FRAMES}")
-    from ..threads import limit_blas_threads
+    from ..threads import settle_numerics
 
-    limit_blas_threads(1)
+    settle_numerics(1)
     result = run_study(frames, overrides)
     summary = summarize(result)
     text = format_report(summary, frames)

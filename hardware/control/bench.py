@@ -38,6 +38,32 @@ from .process import ControlProcess
 TARGETS = {"tick_us_p99": 400.0, "misses_per_10k": 1.0}
 
 
+#: Kernel counters that explain stalls (``/proc/vmstat``: huge pages faulted in and collapsed by
+#: ``khugepaged``; ``/proc/stat``: time the hypervisor ran something else on our CPUs).
+_VMSTAT_KEYS = ("thp_fault_alloc", "thp_collapse_alloc", "compact_stall")
+
+
+def machine_counters() -> dict[str, int]:
+    """The counters of :data:`_VMSTAT_KEYS` and ``steal_ticks`` (1/100 s); {} where unreadable."""
+    out: dict[str, int] = {}
+    try:
+        with open("/proc/vmstat") as f:
+            for line in f:
+                key, _, value = line.partition(" ")
+                if key in _VMSTAT_KEYS:
+                    out[key] = int(value)
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        out["steal_ticks"] = int(fields[8])
+    except (OSError, ValueError, IndexError):
+        pass
+    return out
+
+
+def _counter_deltas(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
+    return {k: after[k] - before[k] for k in before if k in after}
+
+
 def _stats(a: np.ndarray) -> dict[str, float | int | None]:
     """Median, p99 and max (µs, 0.1 µs)."""
     return summary(a, percentiles=(99,), count=False, digits=1)
@@ -49,9 +75,11 @@ class _Perception:
     def __init__(self, decimation: int = 1, control: ControlProcess | None = None) -> None:
         from hapticloud.core.perception import CameraPipeline
         from hapticloud.core.sim import demo_scene
+        from hapticloud.core.threads import numpy_hugepages
 
         from ..sources.simulated import simulated_pair
 
+        numpy_hugepages(False)  # as in a session's perception process (core/threads.py)
         scene = demo_scene(decimation=decimation)
         # A HIP 5 cm off the surface the front camera looks at (a busy crop, as in contact).
         cam = scene.cameras[0]
@@ -144,6 +172,8 @@ def run_bench(
         log_ticks=int(duration_s * 800) + 4096,
     )
     info = cp.start()
+    counters_before = machine_counters()
+    counters_run: dict[str, int] = {}
     perception = None
     try:
         if with_perception:
@@ -162,6 +192,7 @@ def run_bench(
         if perception is not None:
             perception.detach()  # perception goes on (the load), its estimates go nowhere
         res = cp.stop(timeout=30.0)
+        counters_run = _counter_deltas(counters_before, machine_counters())
         floor = None
         if baseline and res is not None:
             body = res["log"]["body_us"][res["log"]["t"] >= t_mark]
@@ -236,6 +267,8 @@ def run_bench(
         "snapshots_dropped": res["snapshots_dropped"],
         "transitions": [t[1:] for t in res["transitions"]],
         "perception": perc,
+        # Huge pages collapsed or faulted in while the loop ran, hypervisor steal (1/100 s).
+        "machine_counters_during_run": counters_run,
         "baseline_null_loop": floor,
         "isolate_cpu": control_cpu is not None,
         "targets": TARGETS,

@@ -13,7 +13,7 @@ frozen, memory locked). One tick::
     reaction = watchdogs.check(...)             # cameras, estimate age, feedback, heartbeat, bus
     fused = fusion.sample(t), or the held surface with the approach capped at v_min
     res = loop.tick(t, fb.position, fb.velocity, fused=fused)
-    link.send_command(tau by session state and reaction, controlwords); link.send_sync()
+    link.send_cycle(tau by session state and reaction, controlwords)  # command + SYNC
     robot state -> shared memory; every 8th tick a snapshot -> pipe (only if writable)
 
 The drives run in their own process by default (``emulator="process"``, on a
@@ -211,7 +211,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
     from hapticloud.core.robot.model import RobotModel
     from hapticloud.core.scene import load_scene
     from hapticloud.core.sim.closed_loop import ClosedLoopSim
-    from hapticloud.core.threads import limit_blas_threads
+    from hapticloud.core.threads import settle_numerics
 
     from ..drives import DriveBusConfig, DriveEmulator, DriveLink, DriveTarget, EmulatorConfig
     from ..drives.emulator_process import EmulatorHandle
@@ -226,7 +226,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
     )
     from .shared_state import RobotStateBlock
 
-    limit_blas_threads(1)
+    settle_numerics(1)
     estop_flag = [False]
 
     def _on_sigint(signum: int, frame: Any) -> None:
@@ -545,8 +545,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                     target = DriveTarget.FAULT_RESET
                 else:
                     target = DriveTarget.DISABLED
-            sent = link.send_command(tau, link.controlwords(target))
-            link.send_sync()
+            sent = link.send_cycle(tau, link.controlwords(target))
             p3 = time.perf_counter()
             if emu is not None and stepped:
                 emu.step()
@@ -668,8 +667,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             emu.stop()
         # Leave the drives without torque.
         try:
-            link.send_command(np.zeros(link.n_drives), link.controlwords(DriveTarget.DISABLED))
-            link.send_sync()
+            link.send_cycle(np.zeros(link.n_drives), link.controlwords(DriveTarget.DISABLED))
         except Exception:
             pass
         emu_events = emu_proc.stop() if emu_proc is not None else []

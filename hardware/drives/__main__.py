@@ -51,11 +51,11 @@ def main(argv: list[str] | None = None) -> int:
         for row in single.rows:
             print(f"  {row.name:<10} {row.payload_bytes:>3} B  {row.frame_s * 1e6:7.2f} us/frame")
         return 0
-    from hapticloud.core.threads import limit_blas_threads
+    from hapticloud.core.threads import settle_numerics
 
     from .bench import bench_codec, bench_cycle
 
-    limit_blas_threads(1)
+    settle_numerics(1)
     transports = ("socketpair", "virtual") if args.transport == "both" else (args.transport,)
     result = {"codec": bench_codec()}
     for transport in transports:

@@ -102,8 +102,7 @@ def bench_cycle(
         try:
             for k in range(cycles + warmup):
                 t0 = time.perf_counter()
-                link.send_command(tau, link.controlwords(DriveTarget.ENABLED))
-                link.send_sync()
+                link.send_cycle(tau, link.controlwords(DriveTarget.ENABLED))
                 t1 = time.perf_counter()
                 emu.step()
                 t2 = time.perf_counter()

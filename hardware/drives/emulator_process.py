@@ -42,14 +42,14 @@ def _emulator_main(sock: socket.socket, conn: Any) -> None:
 
 def _run(sock: socket.socket, conn: Any) -> None:
     from hapticloud.core.robot.model import RobotModel
-    from hapticloud.core.threads import limit_blas_threads
+    from hapticloud.core.threads import settle_numerics
 
     from ..control.deadline import lock_memory, try_sched_fifo
     from .emulator import DriveEmulator, RigidArm
     from .faults import FAULT_METHODS
     from .transport import SocketPairBus
 
-    limit_blas_threads(1)
+    settle_numerics(1)
     kind, init = conn.recv()
     if kind != "init":
         raise RuntimeError(f"emulator process: expected 'init' first, got {kind!r}")

@@ -340,6 +340,7 @@ class DriveLink:
         # A bus with the raw fast path (:class:`~.transport.SocketPairBus`) skips building a
         # ``can.Message`` per frame: most of the master's per-frame cost in the tick.
         self._send_frame = getattr(bus, "send_frame", None)
+        self._send_frames = getattr(bus, "send_frames", None)
         self._read_frames = getattr(bus, "read_frames", None)
         self._cfg = cfg = config or DriveBusConfig()
         self._clock = clock
@@ -550,6 +551,39 @@ class DriveLink:
         numpy.ndarray
             The torques actually sent (N m, after clamping and quantisation), shape (6,).
         """
+        data, sent = self._command_frame(torques, controlwords, cycle)
+        if self._send_data(p.COMMAND_ID, data):
+            self._c["commands_sent"] += 1
+        return sent
+
+    def send_cycle(self, torques: ArrayLike, controlwords: Sequence[int]) -> FloatArray:
+        """:meth:`send_command`, then :meth:`send_sync`: one cycle's frames, in one burst where
+        the bus takes bursts (:meth:`~.transport.SocketPairBus.send_frames`: one system call and
+        one wake-up of the drives instead of two). Same frames, order, counters and return."""
+        if self._send_frames is None:
+            sent = self.send_command(torques, controlwords)
+            self.send_sync()
+            return sent
+        command, sent = self._command_frame(torques, controlwords, None)
+        sync = self._sync_frame()
+        try:
+            self._send_frames(
+                ((p.COMMAND_ID, command), (p.SYNC_ID, sync)), True, self._cfg.bitrate_switch
+            )
+        except can.CanError:
+            self._send_failed()
+            self._send_failed()
+            return sent
+        self._sent(len(command))
+        self._sent(len(sync))
+        self._c["commands_sent"] += 1
+        self._c["syncs_sent"] += 1
+        return sent
+
+    def _command_frame(
+        self, torques: ArrayLike, controlwords: Sequence[int], cycle: int | None
+    ) -> tuple[bytes, FloatArray]:
+        """The command frame's data and the torques it carries (N m); the cycle is taken."""
         tau = np.asarray(torques, dtype=np.float64)
         if tau.shape != (self._n,):
             raise InputError(f"torques: expected shape ({self._n},), got {np.shape(torques)}")
@@ -594,9 +628,7 @@ class DriveLink:
         self._next_cycle = (cycle + 1) & 0xFFFFFFFF
         self._cw_sent = cws
         self._command_pending = True
-        if self._send_data(p.COMMAND_ID, data):
-            c["commands_sent"] += 1
-        return np.array(raw, dtype=np.float64) * p.TORQUE_LSB_NM
+        return data, np.array(raw, dtype=np.float64) * p.TORQUE_LSB_NM
 
     def send_sync(self) -> bool:
         """Send SYNC for the latest command's cycle; the drives latch it and answer.
@@ -605,6 +637,13 @@ class DriveLink:
         A SYNC without a command since the previous one gets the next cycle number, so the drives
         hold their last command and flag it. Returns whether the frame was sent.
         """
+        sent = self._send_data(p.SYNC_ID, self._sync_frame())
+        if sent:
+            self._c["syncs_sent"] += 1
+        return sent
+
+    def _sync_frame(self) -> bytes:
+        """The SYNC frame's data; the previous cycle is closed and this one's time taken."""
         if not self._command_pending:
             # No command since the last SYNC: advance the counter anyway, so that the drives see
             # that they got no fresh command (and report it) instead of re-latching the old one.
@@ -618,10 +657,7 @@ class DriveLink:
         self._sync_cycle = self._cycle
         self._sync_counter = self._cycle & 0xFF
         self._sync_time[self._sync_counter] = self._clock()
-        sent = self._send_data(p.SYNC_ID, codec.encode_sync(self._sync_counter))
-        if sent:
-            self._c["syncs_sent"] += 1
-        return sent
+        return codec.encode_sync(self._sync_counter)
 
     def send_nmt(self, command: p.NmtCommand, drive: int | None = None) -> bool:
         """Send an NMT command to ``drive`` (index) or to all drives."""

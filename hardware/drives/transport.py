@@ -9,9 +9,15 @@ ordered, crosses ``spawn`` (multiprocessing pickles sockets), and costs one syst
 no ``deepcopy`` of each message and no locked queue, which is most of what ``virtual`` costs per
 frame (measured in docs/benchmarks.md).
 
-One datagram per frame::
+One datagram per frame, or per burst of frames handed over together (:meth:`~SocketPairBus.
+send_frames`: the master's command and SYNC of one cycle, as a USB-CAN adapter moves several
+frames per transfer and as EtherCAT carries a whole cycle in one frame). A datagram is a sequence
+of records, one per frame, in bus order::
 
     <d I B B> timestamp (s), arbitration id, flags, data length;  then the data bytes
+
+The receiver sees the frames one by one either way (``recv``, :meth:`~SocketPairBus.read_frames`);
+a burst saves the sender a system call and the receiver a wake-up.
 
 ``flags``: bit 0 extended id, 1 FD, 2 bit-rate switch, 3 error-state indicator, 4 remote frame,
 5 error frame. Timestamps are the sender's ``msg.timestamp`` with ``preserve_timestamps=True``
@@ -29,14 +35,19 @@ import select
 import socket
 import struct
 import time
+from collections import deque
+from collections.abc import Sequence
 from typing import Any
 
 import can
 
-__all__ = ["SocketPairBus", "socket_pair"]
+__all__ = ["MAX_BURST", "SocketPairBus", "socket_pair"]
 
 _HEADER = struct.Struct("<dIBB")
-_MAX_DATAGRAM = _HEADER.size + 64
+_MAX_RECORD = _HEADER.size + 64
+#: Frames in one burst at most (a cycle's command and SYNC are two).
+MAX_BURST = 16
+_MAX_DATAGRAM = MAX_BURST * _MAX_RECORD
 _EXT, _FD, _BRS, _ESI, _RTR, _ERR = 1, 2, 4, 8, 16, 32
 #: Socket buffer per direction: several hundred cycles of frames, so that a stalled reader never
 #: makes the writer block (sends are non-blocking anyway and count a full buffer as an error).
@@ -54,6 +65,23 @@ def socket_pair() -> tuple[socket.socket, socket.socket]:
             except OSError:
                 pass
     return a, b
+
+
+def _records(datagram: bytes) -> list[tuple[float, int, int, bytes]]:
+    """The frames of one datagram as ``(timestamp, id, flags, data)``; a truncated tail is
+    dropped (a sender that died mid-write), never read past."""
+    out = []
+    size = _HEADER.size
+    unpack = _HEADER.unpack_from
+    offset, end = 0, len(datagram)
+    while offset + size <= end:
+        stamp, can_id, flags, length = unpack(datagram, offset)
+        start = offset + size
+        if start + length > end:
+            break
+        out.append((stamp, can_id, flags, datagram[start : start + length]))
+        offset = start + length
+    return out
 
 
 class SocketPairBus(can.BusABC):
@@ -82,6 +110,8 @@ class SocketPairBus(can.BusABC):
         sock.setblocking(False)
         self._fd = sock.fileno()
         self._preserve = preserve_timestamps
+        # Frames of a burst not yet returned by recv(), oldest first.
+        self._backlog: deque[can.Message] = deque()
         self.channel_info = f"socketpair {channel}"
         super().__init__(channel=channel, **kwargs)
         self._can_protocol = can.CanProtocol.CAN_FD
@@ -115,6 +145,8 @@ class SocketPairBus(can.BusABC):
             raise can.CanOperationError(f"send failed: {exc}") from exc
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._backlog:
+            return self._backlog.popleft(), False
         try:
             datagram = os.read(self._fd, _MAX_DATAGRAM)
         except BlockingIOError:
@@ -133,22 +165,26 @@ class SocketPairBus(can.BusABC):
         if not datagram:
             # The other end closed: a bus without a peer.
             raise can.CanOperationError("the other end of the bus closed")
-        stamp, can_id, flags, length = _HEADER.unpack_from(datagram)
-        msg = can.Message(
-            timestamp=stamp,
-            arbitration_id=can_id,
-            is_extended_id=bool(flags & _EXT),
-            is_fd=bool(flags & _FD),
-            bitrate_switch=bool(flags & _BRS),
-            error_state_indicator=bool(flags & _ESI),
-            is_remote_frame=bool(flags & _RTR),
-            is_error_frame=bool(flags & _ERR),
-            data=datagram[_HEADER.size : _HEADER.size + length],
-            is_rx=True,
-            channel=self.channel_info,
-            check=False,
-        )
-        return msg, False
+        for stamp, can_id, flags, data in _records(datagram):
+            self._backlog.append(
+                can.Message(
+                    timestamp=stamp,
+                    arbitration_id=can_id,
+                    is_extended_id=bool(flags & _EXT),
+                    is_fd=bool(flags & _FD),
+                    bitrate_switch=bool(flags & _BRS),
+                    error_state_indicator=bool(flags & _ESI),
+                    is_remote_frame=bool(flags & _RTR),
+                    is_error_frame=bool(flags & _ERR),
+                    data=data,
+                    is_rx=True,
+                    channel=self.channel_info,
+                    check=False,
+                )
+            )
+        if not self._backlog:
+            raise can.CanOperationError("receive failed: a datagram without a whole frame")
+        return self._backlog.popleft(), False
 
     # ----- the fast path (DriveLink uses it when the bus has it) ------------------------------
     def send_frame(self, can_id: int, data: bytes, fd: bool = True, brs: bool = True) -> None:
@@ -162,13 +198,38 @@ class SocketPairBus(can.BusABC):
         except OSError as exc:
             raise can.CanOperationError(f"send failed: {exc}") from exc
 
+    def send_frames(
+        self, frames: Sequence[tuple[int, bytes]], fd: bool = True, brs: bool = True
+    ) -> None:
+        """Send standard-id data frames as one burst (one system call, one wake-up of the
+        receiver), in order; at most :data:`MAX_BURST`. Raises ``can.CanOperationError`` like
+        :meth:`send`; then none of them was sent."""
+        if not 0 < len(frames) <= MAX_BURST:
+            raise ValueError(f"frames: {len(frames)} in one burst; expected 1 to {MAX_BURST}")
+        flags = (_FD if fd else 0) | (_BRS if brs else 0)
+        stamp = time.monotonic()
+        pack = _HEADER.pack
+        datagram = b"".join(
+            [pack(stamp, can_id, flags, len(data)) + data for can_id, data in frames]
+        )
+        try:
+            os.write(self._fd, datagram)
+        except BlockingIOError:
+            raise can.CanOperationError("transmit buffer full") from None
+        except OSError as exc:
+            raise can.CanOperationError(f"send failed: {exc}") from exc
+
     def read_frames(self, limit: int = 512) -> list[tuple[int, bytes, bool]]:
         """Every frame waiting now, as ``(arbitration id, data, is error frame)``; never blocks.
-        Raises ``can.CanOperationError`` if the other end closed."""
+        ``limit`` bounds the datagrams read. Raises ``can.CanOperationError`` if the other end
+        closed."""
         out = []
         fd = self._fd
-        unpack = _HEADER.unpack_from
         size = _HEADER.size
+        unpack = _HEADER.unpack_from
+        while self._backlog:  # left over by recv(): they came first
+            msg = self._backlog.popleft()
+            out.append((msg.arbitration_id, bytes(msg.data), msg.is_error_frame))
         for _ in range(limit):
             try:
                 datagram = os.read(fd, _MAX_DATAGRAM)
@@ -178,8 +239,13 @@ class SocketPairBus(can.BusABC):
                 raise can.CanOperationError(f"receive failed: {exc}") from exc
             if not datagram:
                 raise can.CanOperationError("the other end of the bus closed")
-            _, can_id, flags, length = unpack(datagram)
-            out.append((can_id, datagram[size : size + length], bool(flags & _ERR)))
+            if len(datagram) >= size:  # one frame, the common case, parsed inline
+                _, can_id, flags, length = unpack(datagram)
+                if size + length == len(datagram):
+                    out.append((can_id, datagram[size:], bool(flags & _ERR)))
+                    continue
+            for _, can_id, flags, data in _records(datagram):
+                out.append((can_id, data, bool(flags & _ERR)))
         return out
 
     def fileno(self) -> int:

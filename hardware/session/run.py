@@ -112,12 +112,12 @@ def _perception(
     from hapticloud.core.loop import admit
     from hapticloud.core.scene import load_scene
     from hapticloud.core.sim.closed_loop import ClosedLoopSim
-    from hapticloud.core.threads import limit_blas_threads
+    from hapticloud.core.threads import settle_numerics
 
     from ..control.process import send_estimate
     from ..control.shared_state import RobotStateBlock
 
-    limit_blas_threads(1)
+    settle_numerics(1)
     sim = ClosedLoopSim(load_scene(scene, overrides))
     cams = sim.cameras
     block = RobotStateBlock.attach(block_name, n_joints)

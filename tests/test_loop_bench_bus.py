@@ -1,0 +1,26 @@
+"""``hapticloud bench loop --bus``: the result's shape (the figures themselves are benchmarks)."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+from hapticloud.hardware.control.bench import machine_counters, run_bench
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_machine_counters_read_the_kernel() -> None:
+    counters = machine_counters()
+    assert {"thp_fault_alloc", "thp_collapse_alloc", "steal_ticks"} <= set(counters)
+    assert all(isinstance(v, int) and v >= 0 for v in counters.values())
+
+
+def test_bus_bench_reports_ticks_misses_and_the_machine_counters() -> None:
+    res = run_bench("impacts", 1.0)
+    assert res["ticks"] > 600  # 800 Hz for 1 s, less start-up
+    assert res["transitions"][-1][1] == "enabled"
+    for key in ("tick_us_p99", "misses_per_10k", "body_us", "breakdown_us"):
+        assert key in res
+    assert res["misses_per_10k"] >= 0.0
+    if sys.platform.startswith("linux"):
+        assert "thp_collapse_alloc" in res["machine_counters_during_run"]
