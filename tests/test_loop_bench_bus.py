@@ -18,7 +18,8 @@ def test_machine_counters_read_the_kernel() -> None:
 def test_bus_bench_reports_ticks_misses_and_the_machine_counters() -> None:
     res = run_bench("impacts", 1.0)
     assert res["ticks"] > 600  # 800 Hz for 1 s, less start-up
-    assert res["transitions"][-1][1] == "enabled"
+    # Reached ENABLED (a stall of the shared machine may fault it afterwards, correctly).
+    assert ["ready", "enabled", "bench"] in [list(tr) for tr in res["transitions"]]
     for key in ("tick_us_p99", "misses_per_10k", "body_us", "breakdown_us"):
         assert key in res
     assert res["misses_per_10k"] >= 0.0
