@@ -247,16 +247,25 @@ class _Perception:
 
 def _wait_state(cp: Any, code: int, timeout_s: float) -> Any:
     end = time.monotonic() + timeout_s
+    seen = None
     while time.monotonic() < end:
         st = cp.robot_state()
-        if st is not None and st.state_code == code:
-            return st
+        if st is not None:
+            seen = st.state_code
+            if seen == code:
+                return st
         if not cp.alive:
             break
         time.sleep(0.002)
+    # Say where the session was instead, and its last state change (a fault during start-up).
+    where = "no tick yet" if seen is None else f"last seen {_STATE_NAMES.get(seen, seen)}"
+    snap = cp.latest
+    events = [text for _, kind, text in snap.events if kind == "state"] if snap else []
+    if events:
+        where += f", {events[-1]}"
     raise RuntimeError(
         f"control process: session did not reach {_STATE_NAMES.get(code, code)} in "
-        f"{timeout_s:g} s{': ' + cp.error if cp.error else ''}"
+        f"{timeout_s:g} s ({where}){': ' + cp.error if cp.error else ''}"
     )
 
 
