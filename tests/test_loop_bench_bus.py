@@ -22,6 +22,5 @@ def test_bus_bench_reports_ticks_misses_and_the_machine_counters() -> None:
     assert ["ready", "enabled", "bench"] in [list(tr) for tr in res["transitions"]]
     for key in ("tick_us_p99", "misses_per_10k", "body_us", "breakdown_us"):
         assert key in res
-    assert res["misses_per_10k"] >= 0.0
     if sys.platform.startswith("linux"):
         assert "thp_collapse_alloc" in res["machine_counters_during_run"]

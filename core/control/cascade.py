@@ -32,7 +32,7 @@ import quadprog
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from .rows import Equality, Inequality
+from .rows import Equality, Inequality, task_parts
 
 FloatArray = NDArray[np.float64]
 
@@ -82,14 +82,7 @@ def _stack_level(
 ) -> _LevelRows:
     mats, rhs, kinds = [], [], []
     for task in level:
-        if isinstance(task, Equality):
-            mat, vec, eq = task.A, task.b, True
-        elif isinstance(task, Inequality):
-            mat, vec, eq = task.G, task.h, False
-        else:
-            raise InputError(
-                f"level task: expected Equality or Inequality, got {type(task).__name__}"
-            )
+        mat, vec, eq = task_parts(task, "level task")
         mat = np.asarray(mat, dtype=np.float64)
         vec = np.asarray(vec, dtype=np.float64)
         if mat.ndim != 2 or mat.shape[1] != n_vars or vec.shape != (mat.shape[0],):

@@ -58,7 +58,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
 from .cascade import solve_cascade
-from .rows import Equality, Inequality
+from .rows import Equality, Inequality, task_parts
 
 FloatArray = NDArray[np.float64]
 
@@ -329,14 +329,7 @@ class HierarchicalSolver:
 
         ``k`` is the level's index (0 = top), for the message.
         """
-        if isinstance(task, Equality):
-            mat, vec, eq = task.A, task.b, True
-        elif isinstance(task, Inequality):
-            mat, vec, eq = task.G, task.h, False
-        else:
-            raise InputError(
-                f"level {k + 1}: expected Equality or Inequality, got {type(task).__name__}"
-            )
+        mat, vec, eq = task_parts(task, f"level {k + 1}")
         if not (isinstance(mat, np.ndarray) and isinstance(vec, np.ndarray)):
             mat, vec = self._as_arrays(mat, vec, task[2])
         n = self.n_vars

@@ -12,6 +12,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import InputError
+
 FloatArray = NDArray[np.float64]
 
 
@@ -34,3 +36,13 @@ class Inequality(NamedTuple):
 def empty_inequality(n_vars: int, name: str = "") -> Inequality:
     """An inequality task with no rows (a constraint that is inactive this tick)."""
     return Inequality(np.zeros((0, n_vars)), np.zeros(0), name)
+
+
+def task_parts(task: object, where: str) -> tuple[object, object, bool]:
+    """``(matrix, right-hand side, is equality)`` of ``task``, unconverted; ``where`` names the
+    place in the message (``"level 3"``) when ``task`` is neither kind."""
+    if isinstance(task, Equality):
+        return task.A, task.b, True
+    if isinstance(task, Inequality):
+        return task.G, task.h, False
+    raise InputError(f"{where}: expected Equality or Inequality, got {type(task).__name__}")

@@ -52,7 +52,7 @@ import select
 import signal
 import time
 import traceback
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -590,20 +590,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 log_hip[i] = hip_now
             if i % snap_every == 0:
                 # Session and watchdog changes since the last snapshot that got out.
-                trs = machine.log
-                if trs and trs[-1] is not last_tr:
-                    for tr in _after(trs, last_tr):
-                        pending_events.append(
-                            (tr.t, "state", f"{tr.to_state.value}: {tr.reason}"[:160])
-                        )
-                    last_tr = trs[-1]
-                rlog = wd.log
-                if rlog and rlog[-1] is not last_r:
-                    for r in _after(rlog, last_r):
-                        pending_events.append(
-                            (r.t, "reaction", f"{r.level.name} {r.source}: {r.reason}"[:160])
-                        )
-                    last_r = rlog[-1]
+                last_tr = _collect(machine.log, last_tr, pending_events, "state", _state_text)
+                last_r = _collect(wd.log, last_r, pending_events, "reaction", _reaction_text)
                 if _writable(out_fd):
                     seq += 1
                     load = fb.bus_load_since(last_fb) if last_fb is not None else math.nan
@@ -701,6 +689,30 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             },
         )
     )
+
+
+def _state_text(tr: Any) -> str:
+    return f"{tr.to_state.value}: {tr.reason}"
+
+
+def _reaction_text(r: Any) -> str:
+    return f"{r.level.name} {r.source}: {r.reason}"
+
+
+def _collect(
+    log: tuple[Any, ...],
+    last: Any,
+    into: list[tuple[float, str, str]],
+    kind: str,
+    text: Callable[[Any], str],
+) -> Any:
+    """Append the entries of ``log`` after ``last`` to ``into`` as ``(t, kind, text)`` (text cut
+    to 160 characters); returns the new ``last``."""
+    if not log or log[-1] is last:
+        return last
+    for entry in _after(log, last):
+        into.append((entry.t, kind, text(entry)[:160]))
+    return log[-1]
 
 
 def _after(log: tuple[Any, ...], last: Any) -> list[Any]:

@@ -454,6 +454,17 @@ class DriveLink:
             return self._send_failed()
         return self._sent(len(data))
 
+    def _send_all(self, frames: tuple[tuple[int, bytes], ...]) -> list[bool]:
+        """Send data frames in order: one burst where the bus takes bursts (all or none sent),
+        else one by one. Whether each was sent; send errors and bus time counted per frame."""
+        if self._send_frames is None:
+            return [self._send_data(can_id, data) for can_id, data in frames]
+        try:
+            self._send_frames(frames, True, self._cfg.bitrate_switch)
+        except can.CanError:
+            return [self._send_failed() for _ in frames]
+        return [self._sent(len(data)) for _, data in frames]
+
     def _send_failed(self) -> bool:
         self._c["send_errors"] += 1
         self._consecutive_send_errors += 1
@@ -560,24 +571,14 @@ class DriveLink:
         """:meth:`send_command`, then :meth:`send_sync`: one cycle's frames, in one burst where
         the bus takes bursts (:meth:`~.transport.SocketPairBus.send_frames`: one system call and
         one wake-up of the drives instead of two). Same frames, order, counters and return."""
-        if self._send_frames is None:
-            sent = self.send_command(torques, controlwords)
-            self.send_sync()
-            return sent
         command, sent = self._command_frame(torques, controlwords, None)
-        sync = self._sync_frame()
-        try:
-            self._send_frames(
-                ((p.COMMAND_ID, command), (p.SYNC_ID, sync)), True, self._cfg.bitrate_switch
-            )
-        except can.CanError:
-            self._send_failed()
-            self._send_failed()
-            return sent
-        self._sent(len(command))
-        self._sent(len(sync))
-        self._c["commands_sent"] += 1
-        self._c["syncs_sent"] += 1
+        command_ok, sync_ok = self._send_all(
+            ((p.COMMAND_ID, command), (p.SYNC_ID, self._sync_frame()))
+        )
+        if command_ok:
+            self._c["commands_sent"] += 1
+        if sync_ok:
+            self._c["syncs_sent"] += 1
         return sent
 
     def _command_frame(

@@ -77,19 +77,14 @@ class _HipSampler:
 
 
 # ----- perception, in a process of its own -------------------------------------------------------
-def _perception_main(
-    scene: str,
-    overrides: dict[str, Any] | None,
-    block_name: str,
-    n_joints: int,
-    est_conn: Any,
-    conn: Any,
-) -> None:
+def _perception_main(*args: Any) -> None:
+    """:func:`_perception` (same arguments, the answer pipe last), its failure sent as
+    ``("error", traceback)``."""
     try:
-        _perception(scene, overrides, block_name, n_joints, est_conn, conn)
+        _perception(*args)
     except BaseException:
         try:
-            conn.send(("error", traceback.format_exc()))
+            args[-1].send(("error", traceback.format_exc()))
         except Exception:
             pass
 
