@@ -114,3 +114,54 @@ def test_cli_run_hardware_bad_input(capsys):
     err = capsys.readouterr().err
     assert err.startswith("hapticloud: error:") and len(err.strip().splitlines()) == 1
     assert main(["run", "no-such-scene", "--hardware"]) == 2
+
+
+def test_a_fault_before_enable_is_reset_once_its_cause_clears():
+    """A session that faults before enable (a stall at start-up, here a persistent drive fault)
+    is reset by ``run --hardware`` as an operator would: refused while the drive still reports
+    the fault, taken once it has cleared; the fault is named for the report."""
+    import threading
+
+    from hapticloud.hardware.control import ControlProcess
+    from hapticloud.hardware.session.run import _FAULT, _READY, _StateWaiter
+
+    cp = ControlProcess("impacts", fifo_priority=None)
+    cp.start(timeout=60.0)
+    try:
+        snaps: list = []
+        waiter = _StateWaiter(cp, snaps)
+        waiter.wait((_READY,), 30.0)
+        cp.inject_drive_fault(3, persistent=True)
+        waiter.wait((_FAULT,), 5.0)
+        clear = threading.Timer(0.4, cp.clear_drive_fault, (3,))
+        clear.start()
+        t0 = cp.robot_state().t
+        faults = waiter.ready(10.0)
+        clear.join()
+        assert cp.robot_state().state_code == _READY
+        # Not before the drive cleared: the first resets were refused.
+        assert cp.robot_state().t - t0 >= 0.4
+        assert len(faults) == 1 and faults[0].startswith("fault: watchdog drive_fault")
+        assert snaps and all(s.state != "enabled" for s in snaps)
+    finally:
+        cp.stop(timeout=20.0)
+
+
+def test_a_fault_before_enable_that_does_not_clear_is_an_error():
+    from hapticloud.hardware.control import ControlProcess
+    from hapticloud.hardware.session.run import _FAULT, _READY, _StateWaiter
+
+    cp = ControlProcess("impacts", fifo_priority=None)
+    cp.start(timeout=60.0)
+    try:
+        waiter = _StateWaiter(cp, [])
+        waiter.wait((_READY,), 30.0)
+        cp.inject_drive_fault(1, persistent=True)
+        waiter.wait((_FAULT,), 5.0)
+        with pytest.raises(
+            RuntimeError,
+            match=r"faulted before enable .* did not clear in 1 s \(fault: watchdog drive_fault",
+        ):
+            waiter.ready(1.0)
+    finally:
+        cp.stop(timeout=20.0)

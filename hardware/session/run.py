@@ -51,8 +51,14 @@ __all__ = ["HARDWARE_MODE", "run_session", "summary_lines"]
 #: What the report says about how the session ran.
 HARDWARE_MODE = "through the hardware layer: control process + emulated drives"
 
+_CONNECTED = 1
 _READY = 2
 _ENABLED = 3
+_FAULT = 4
+_STARTUP_RESETS = 3
+"""Faults before enable that ``run --hardware`` resets by itself. On a loaded machine a stall
+while the perception process starts (importing its libraries) can hold back the drives' feedback
+past ``feedback_lost_s``; the watchdog faults the session, rightly, with no torque flowing."""
 _STATE_NAMES = {0: "disconnected", 1: "connected", 2: "ready", 3: "enabled", 4: "fault", 5: "estop"}
 
 
@@ -240,28 +246,85 @@ class _Perception:
         return out
 
 
-def _wait_state(cp: Any, code: int, timeout_s: float) -> Any:
-    end = time.monotonic() + timeout_s
-    seen = None
-    while time.monotonic() < end:
-        st = cp.robot_state()
-        if st is not None:
-            seen = st.state_code
-            if seen == code:
-                return st
-        if not cp.alive:
-            break
-        time.sleep(0.002)
-    # Say where the session was instead, and its last state change (a fault during start-up).
-    where = "no tick yet" if seen is None else f"last seen {_STATE_NAMES.get(seen, seen)}"
-    snap = cp.latest
-    events = [text for _, kind, text in snap.events if kind == "state"] if snap else []
-    if events:
-        where += f", {events[-1]}"
-    raise RuntimeError(
-        f"control process: session did not reach {_STATE_NAMES.get(code, code)} in "
-        f"{timeout_s:g} s ({where}){': ' + cp.error if cp.error else ''}"
-    )
+class _StateWaiter:
+    """Waits for the session's states from this process, keeping every snapshot it drains (the
+    report's) and the session's last state change (what a timeout names)."""
+
+    def __init__(self, cp: Any, snaps: list[Any]) -> None:
+        self._cp = cp
+        self._snaps = snaps
+        self.last_change = ""
+        self.last_fault = ""
+
+    def _drain(self) -> None:
+        for snap in self._cp.snapshots():
+            self._snaps.append(snap)
+            for _, kind, text in snap.events:
+                if kind == "state":
+                    self.last_change = text
+                    if text.startswith(f"{_STATE_NAMES[_FAULT]}:"):
+                        self.last_fault = text
+
+    def wait(self, codes: tuple[int, ...], timeout_s: float) -> Any:
+        """The loop's state once its code is one of ``codes``; raises after ``timeout_s``."""
+        cp = self._cp
+        end = time.monotonic() + timeout_s
+        seen = None
+        while time.monotonic() < end:
+            st = cp.robot_state()
+            if st is not None:
+                seen = st.state_code
+                if seen in codes:
+                    self._drain()
+                    return st
+            if not cp.alive:
+                break
+            time.sleep(0.002)
+        self._drain()
+        where = "no tick yet" if seen is None else f"last seen {_STATE_NAMES.get(seen, seen)}"
+        if self.last_change:
+            where += f", {self.last_change}"
+        wanted = " or ".join(_STATE_NAMES.get(c, str(c)) for c in codes)
+        raise RuntimeError(
+            f"control process: session did not reach {wanted} in "
+            f"{timeout_s:g} s ({where}){': ' + cp.error if cp.error else ''}"
+        )
+
+    def ready(self, timeout_s: float) -> list[str]:
+        """Wait for READY. A fault on the way (no torque flows before enable) is reset once its
+        cause has cleared, as the operator would press Reset, at most :data:`_STARTUP_RESETS`
+        times; returns those faults' state changes, which the report lists."""
+        end = time.monotonic() + timeout_s
+        faults: list[str] = []
+        while True:
+            st = self.wait((_READY, _FAULT), max(0.0, end - time.monotonic()))
+            if st.state_code == _READY:
+                return faults
+            # The fault's text comes with a snapshot, up to a few ticks after the state.
+            self.last_fault = ""
+            faults.append("fault")
+            if len(faults) > _STARTUP_RESETS:
+                raise RuntimeError(
+                    f"control process: session faulted {len(faults)} times before enable "
+                    f"(last: {self.last_fault or faults[-2]})"
+                )
+            # The loop refuses a reset while a torque-off cause is active: ask again until it
+            # takes or the time is out.
+            while True:
+                self._cp.reset()
+                try:
+                    self.wait((_READY, _CONNECTED), min(0.2, max(0.0, end - time.monotonic())))
+                    break
+                except RuntimeError as err:
+                    if not self._cp.alive:
+                        raise
+                    if time.monotonic() >= end:
+                        raise RuntimeError(
+                            f"control process: session faulted before enable and its fault did "
+                            f"not clear in {timeout_s:g} s ({self.last_fault or 'fault'})"
+                        ) from err
+                finally:
+                    faults[-1] = self.last_fault or faults[-1]
 
 
 def run_session(
@@ -349,15 +412,17 @@ def run_session(
     perception = None
     estimates: dict[str, Any] = {}
     snaps: list[Any] = []
+    waiter = _StateWaiter(cp, snaps)
+    startup_faults: list[str] = []
     t_enabled = math.nan
     result: dict[str, Any] | None = None
     try:
         if cams:
             perception = _Perception(scene, ovr, cp, sim.robot.n_joints)
             perception.wait_ready()
-        _wait_state(cp, _READY, 30.0)
+        startup_faults = waiter.ready(30.0)
         cp.enable("hapticloud run --hardware")
-        t_enabled = _wait_state(cp, _ENABLED, 5.0).t
+        t_enabled = waiter.wait((_ENABLED,), 5.0).t
         if perception is not None:
             perception.go(t_enabled)
         say(f"session enabled; running {duration:g} s of {loaded.name} in real time ...")
@@ -402,6 +467,7 @@ def run_session(
         emulator,
         time.monotonic() - wall0,
         STATE_CODES,
+        startup_faults,
     )
 
 
@@ -420,6 +486,7 @@ def _report(
     emulator: str,
     wall_s: float,
     codes: Mapping[str, int],
+    startup_faults: list[str],
 ) -> dict[str, Any]:
     log = result["log"]
     state = log["state"]
@@ -516,6 +583,7 @@ def _report(
         },
         "session": {
             "transitions": [list(tr) for tr in result["transitions"]],
+            "startup_faults_reset": list(startup_faults),
             "reactions": [list(rx) for rx in result["reactions"]],
             "reaction_ticks": {
                 name: int((log["reaction"][enabled] == level).sum())
@@ -559,6 +627,9 @@ def summary_lines(rep: Mapping[str, Any]) -> list[str]:
         f"(max penetration {mm(tr.get('max_penetration_m'))}), "
         f"min d_proj {mm(rep['haptics']['min_d_proj_m'])}",
     ]
+    resets = rep["session"].get("startup_faults_reset")
+    if resets:
+        lines.append(f"reset before enable: {'; '.join(resets)}")
     if rep.get("error"):
         lines.append(f"control process error: {rep['error']}")
     return lines
