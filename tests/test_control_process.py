@@ -64,6 +64,31 @@ def test_deadline_loop_quiet_run_has_no_misses_and_fifo_falls_back_cleanly():
         assert os.sched_getscheduler(0) != os.SCHED_FIFO
 
 
+def test_deadline_loop_runs_work_ahead_in_the_spin_window_only():
+    dl = DeadlineLoop(0.002, spin_s=0.0008)
+    calls: list[tuple[int, float]] = []
+    ticks = []
+    dl.start()
+    try:
+        for _ in range(20):
+            k, t_k = dl.wait(lambda: calls.append((dl.tick, time.perf_counter())))
+            ticks.append((k, t_k))
+            if k == 5:
+                time.sleep(0.0035)  # past the next deadline: no work ahead for tick 6
+            dl.done()
+    finally:
+        dl.stop()
+    # Called before its deadline (the previous tick index is still current), never after it.
+    by_tick = {k + 1: t for k, t in calls}
+    assert len(by_tick) == len(calls)
+    for k, t_k in ticks:
+        if k in by_tick:
+            assert t_k - 0.0008 - 0.0005 < by_tick[k] < t_k
+    assert 6 not in by_tick
+    assert 7 in by_tick  # woke inside tick 7's spin window: the work ahead fits
+    assert len(calls) >= 15
+
+
 def test_try_sched_fifo_never_raises():
     ok, note = try_sched_fifo(1)
     assert isinstance(ok, bool) and note
@@ -116,6 +141,14 @@ def test_process_runs_returns_snapshots_and_stops_cleanly(run):
     assert counters["send_errors"] == 0
 
 
+def test_drive_answers_are_decoded_before_the_deadline(run):
+    log = run["result"]["log"]
+    on = log["state"] == ENABLED
+    # The six answers to the last SYNC arrive within the period: read in the spin, not the tick.
+    assert np.median(log["ahead_frames"][on]) >= 6
+    assert np.median(log["ahead_us"][on]) > 0.0
+
+
 def test_no_torque_before_enable_and_torque_after(run):
     log = run["result"]["log"]
     state, tau = log["state"], log["tau_sent"]
@@ -158,16 +191,20 @@ def test_controller_change_applies_when_not_enabled_and_is_refused_when_enabled(
         time.sleep(0.1)
         cp.enable("test")
         time.sleep(0.1)
-        cp.configure(controller=ControllerConfig())  # ENABLED: refused
+        # ENABLED: refused, twelve times in one tick (more events than a snapshot carries).
+        for _ in range(12):
+            cp.configure(controller=ControllerConfig())
         time.sleep(0.1)
         with pytest.raises(TypeError):
             cp.configure(controller="not a config")
     finally:
         res = cp.stop(timeout=20.0)
-    # Snapshots received up to the end (stop() drains the pipe).
+    # Nothing read the snapshots during the run (the pipe filled and snapshots were dropped);
+    # every event still arrives, in order, by the end (stop() drains the pipe).
     events = [e for s in cp.snapshots() for e in s.events if e[1] == "config"]
     assert [e[2] for e in events] == [
         "controller applied",
-        "controller change refused: disable the session first",
+        *["controller change refused: disable the session first"] * 12,
     ]
+    assert [e[0] for e in events] == sorted(e[0] for e in events)
     assert res is not None and (res["log"]["state"] == ENABLED).any()

@@ -474,6 +474,56 @@ def test_poll_with_a_deadline_and_offline_decoding() -> None:
             spare.shutdown()
 
 
+@pytest.mark.parametrize("socketpair", [False, True])
+def test_frames_read_ahead_give_the_same_feedback_as_one_poll(socketpair: bool) -> None:
+    """The control loop decodes the drives' answers in its spin before the deadline
+    (``read_pending``), then polls at the deadline: same snapshot as polling once."""
+    from hapticloud.hardware.drives.bench import open_bus_pair
+
+    def run(read_ahead: bool) -> list[DriveFeedback]:
+        if socketpair:
+            master, drives = open_bus_pair("socketpair")
+        else:
+            master, drives = open_bus_pair("virtual")
+        clock = FakeClock()
+        try:
+            link = DriveLink(master, clock=clock)
+            emu = DriveEmulator(
+                drives, emulator=EmulatorConfig(model_bus_timing=False), model=MODEL, clock=clock
+            )
+
+            def pump() -> None:
+                emu.step()
+                clock.advance(link.config.cycle_period_s)
+                emu.step()
+
+            emu.step()
+            link.start_nodes()
+            pump()
+            link.run_sequence(DriveTarget.ENABLED, pump=pump)
+            out = []
+            for k in range(20):
+                link.send_cycle(np.full(6, 0.1 * k), link.controlwords(DriveTarget.ENABLED))
+                pump()
+                if read_ahead:
+                    # The six answers (and any heartbeat) are in; nothing is left for the poll.
+                    assert link.read_pending() >= 6
+                    assert link.read_pending() == 0
+                out.append(link.poll_feedback())
+            return out
+        finally:
+            master.shutdown()
+            drives.shutdown()
+
+    once, ahead = run(False), run(True)
+    for a, b in zip(once, ahead, strict=True):
+        assert a.complete and b.complete
+        np.testing.assert_array_equal(a.position_rad, b.position_rad)
+        np.testing.assert_array_equal(a.velocity_rad_s, b.velocity_rad_s)
+        np.testing.assert_array_equal(a.torque_nm, b.torque_nm)
+        assert a.state == b.state and a.counters == b.counters
+
+
 def test_a_dead_bus_never_raises_into_the_loop() -> None:
     bus = can.Bus(interface="virtual", channel="drive-test-dead", protocol=FD)
     link = DriveLink(bus, clock=FakeClock())

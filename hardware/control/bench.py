@@ -13,7 +13,9 @@ in its period, which the deadline sees: the tick, then publishing (shared-memory
 snapshot) and adding the estimates that arrived to the fusion (a refit), both after the command
 is out. ``master_us`` is the tick without the haptic tick and the emulator; ``breakdown_us``
 splits the body into ``poll``, ``inputs`` (commands, watchdogs, fusion sample), ``send``,
-``publish`` and ``fusion``; ``lateness_us`` is the start of a tick after its deadline. With
+``publish`` and ``fusion``; ``ahead`` is the decoding, in the spin before the deadline, of the
+feedback frames that had arrived by then (outside the tick: the tick's ``poll`` reads what came
+since); ``lateness_us`` is the start of a tick after its deadline. With
 ``emulator="process"`` (the default) the drives answer from their own process, as real drives do
 from their own hardware. A *miss* is a tick that started more than one period late or whose
 body ran past the next deadline (:mod:`.deadline`).
@@ -245,7 +247,7 @@ def run_bench(
         "body_us": _stats(work),
         "breakdown_us": {
             part: _stats(log[f"{part}_us"][sel])
-            for part in ("poll", "inputs", "send", "publish", "fusion")
+            for part in ("ahead", "poll", "inputs", "send", "publish", "fusion")
         },
         "tick_without_emulator_us": _stats(tick - log["emulator_us"][sel]),
         "sched_fifo": bool(info["sched_fifo"]),

@@ -24,6 +24,7 @@ import gc
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -195,8 +196,14 @@ class DeadlineLoop:
         return self._k
 
     # ----- per tick -----------------------------------------------------------------------------
-    def wait(self) -> tuple[int, float]:
-        """Wait for the next deadline; returns ``(k, t_k)`` (``perf_counter`` seconds)."""
+    def wait(self, ahead: Callable[[], object] | None = None) -> tuple[int, float]:
+        """Wait for the next deadline; returns ``(k, t_k)`` (``perf_counter`` seconds).
+
+        ``ahead`` is work that can be done before the deadline (reading the frames the drives
+        already sent): called once on waking, inside the spin window, only if the deadline is
+        still ahead. Its time is the spin's, not the tick's; a call that runs past the deadline
+        shows as lateness.
+        """
         if self._in_tick:
             self.done()
         period = self.period_s
@@ -212,6 +219,8 @@ class DeadlineLoop:
         wake = t_k - self.spin_s
         if now < wake:
             time.sleep(wake - now)
+        if ahead is not None and time.perf_counter() < t_k:
+            ahead()
         while True:
             now = time.perf_counter()
             if now >= t_k:

@@ -94,8 +94,10 @@ class ControlSnapshot(NamedTuple):
 
     Times are :func:`time.monotonic` seconds (system-wide). ``force_n`` is the constraint force at
     the HIP: the Cartesian force whose ``J^T f`` is the torque beyond transparency
-    (``tau_sent - h``), least squares. ``events`` are the session transitions and watchdog
-    reaction changes since the previous snapshot that got out: ``(t, kind, text)`` with kind
+    (``tau_sent - h``), least squares. ``events`` are the session transitions, watchdog
+    reaction changes and configuration results no earlier snapshot carried, oldest first, up to
+    eight (the rest follow in the next snapshots; those left when the loop stops come in one
+    last snapshot, received by :meth:`ControlProcess.stop`): ``(t, kind, text)`` with kind
     ``"state"``, ``"reaction"`` or ``"config"``.
     """
 
@@ -148,8 +150,12 @@ _LOG_FIELDS = (
     "publish_us",
     "fusion_us",
     "body_us",
+    "ahead_us",
+    "ahead_frames",
 )
 _MAX_EVENTS_PER_SNAPSHOT = 8
+#: Events kept for the snapshots while none gets out (a reader that stopped reading).
+_MAX_PENDING_EVENTS = 256
 #: Ticks of fault-reset controlwords a reset request sends (the drives clear on its rising edge).
 _FAULT_RESET_TICKS = 8
 
@@ -359,6 +365,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
         estimates_waiting = False
         seq = 0
         dropped = 0
+        events_dropped = 0
         events: list[tuple[int, float, str, str]] = []
         pending_events: list[tuple[float, str, str]] = []
         last_tr: Any = None
@@ -454,8 +461,18 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                     added = True
             return added
 
+        ahead = [0.0, 0]  # time (µs) and frames of the last read ahead
+
+        def read_ahead() -> None:
+            # The drives answered the last SYNC during the period: their frames are decoded in
+            # the spin before the deadline, and the tick reads only what came since.
+            a0 = time.perf_counter()
+            ahead[1] = link.read_pending()
+            ahead[0] = (time.perf_counter() - a0) * 1e6
+
         while running:
-            k, _ = dl.wait()
+            ahead[0], ahead[1] = 0.0, 0
+            k, _ = dl.wait(read_ahead)
             p0 = time.perf_counter()
             t = time.monotonic()
             fb = link.poll_feedback()
@@ -586,6 +603,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 log["poll_us"][i] = (p_poll - p0) * 1e6
                 log["inputs_us"][i] = (p1 - p_poll) * 1e6
                 log["send_us"][i] = (p3 - p2) * 1e6
+                log["ahead_us"][i] = ahead[0]
+                log["ahead_frames"][i] = ahead[1]
                 log_tau[i] = sent
                 log_hip[i] = hip_now
             if i % snap_every == 0:
@@ -627,14 +646,19 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                                 dl.misses,
                                 dropped,
                                 load,
-                                tuple(pending_events[-_MAX_EVENTS_PER_SNAPSHOT:]),
+                                tuple(pending_events[:_MAX_EVENTS_PER_SNAPSHOT]),
                             ),
                         )
                     )
-                    pending_events.clear()
+                    # Oldest first; the rest go with the next snapshots.
+                    del pending_events[:_MAX_EVENTS_PER_SNAPSHOT]
                     tick_max = 0.0
                 else:
                     dropped += 1
+                if len(pending_events) > _MAX_PENDING_EVENTS:
+                    # Nobody reads the snapshots: keep the newest (the result keeps them all).
+                    events_dropped += len(pending_events) - _MAX_PENDING_EVENTS
+                    del pending_events[:-_MAX_PENDING_EVENTS]
             p5 = time.perf_counter()
             if estimates_waiting:
                 estimates_waiting = False
@@ -667,6 +691,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
         emu_events = [tuple(e) for e in emu.events()][-256:]
     m = min(i, cap)
     stats = dl.stats().as_dict()
+    _collect(machine.log, last_tr, pending_events, "state", _state_text)
+    _collect(wd.log, last_r, pending_events, "reaction", _reaction_text)
     out_conn.send(
         (
             "result",
@@ -683,6 +709,9 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 "commands": events,
                 "snapshots_sent": seq,
                 "snapshots_dropped": dropped,
+                # Changes no snapshot carried yet; the parent hands them on in one more snapshot.
+                "pending_events": pending_events[-_MAX_PENDING_EVENTS:],
+                "events_dropped": events_dropped,
                 "log": {f: a[:m].copy() for f, a in log.items()}
                 | {"tau_sent": log_tau[:m].copy(), "hip_m": log_hip[:m].copy()},
                 "bus_schedule": _busy_per_cycle(cfg),
@@ -924,6 +953,12 @@ class ControlProcess:
             self.info = payload
         elif kind == "result":
             self.result = payload
+            pending = payload.get("pending_events")
+            if pending and self._latest is not None:
+                # The changes no snapshot carried, on a copy of the last one (the loop is over).
+                last = self._latest._replace(seq=self._latest.seq + 1, events=tuple(pending))
+                self._snaps.append(last)
+                self._latest = last
         elif kind == "error":
             self.error = payload
 

@@ -744,6 +744,30 @@ class DriveLink:
             self._emcy.append(Emergency(now, i, e.code, e.register, e.cycle))
             self._event(i, "emcy", f"0x{e.code:04X}")
 
+    def read_pending(self) -> int:
+        """Handle every frame received so far, without waiting and without a snapshot (the
+        control loop calls it just before its deadline, so that the tick finds little left to
+        decode). Returns the number of frames handled."""
+        n = 0
+        try:
+            if self._read_frames is not None:
+                handle = self._handle
+                for can_id, data, is_error in self._read_frames(_MAX_FRAMES_PER_POLL):
+                    handle(can_id, data, is_error)
+                    n += 1
+                return n
+            recv = self._bus.recv
+            for _ in range(_MAX_FRAMES_PER_POLL):
+                msg = recv(0.0)
+                if msg is None:
+                    break
+                self.handle(msg)
+                n += 1
+        except can.CanError:
+            # Some backends raise from recv on a controller error; the loop must go on.
+            self._c["receive_errors"] += 1
+        return n
+
     def poll_feedback(self, deadline: float | None = None) -> DriveFeedback:
         """Collect received frames and return a snapshot.
 
@@ -753,17 +777,15 @@ class DriveLink:
             ``None``: take only what has arrived (never blocks). Otherwise wait, until this time
             of the link clock at the latest, for all six answers to the latest SYNC.
         """
+        if deadline is None:
+            self.read_pending()
+            return self.snapshot()
         bus = self._bus
         try:
-            if deadline is None and self._read_frames is not None:
-                handle = self._handle
-                for can_id, data, is_error in self._read_frames(_MAX_FRAMES_PER_POLL):
-                    handle(can_id, data, is_error)
-                return self.snapshot()
             for _ in range(_MAX_FRAMES_PER_POLL):
                 msg = bus.recv(0.0)
                 if msg is None:
-                    if deadline is None or self._n_fresh == self._n:
+                    if self._n_fresh == self._n:
                         break
                     remaining = deadline - self._clock()
                     if remaining <= 0.0:
@@ -773,7 +795,6 @@ class DriveLink:
                         break
                 self.handle(msg)
         except can.CanError:
-            # Some backends raise from recv on a controller error; the loop must go on.
             self._c["receive_errors"] += 1
         return self.snapshot()
 
