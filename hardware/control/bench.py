@@ -250,6 +250,8 @@ def run_bench(
             for part in ("ahead", "poll", "inputs", "send", "publish", "fusion")
         },
         "tick_without_emulator_us": _stats(tick - log["emulator_us"][sel]),
+        # Frames decoded in the spin before the deadline, per tick (6 answers, heartbeats).
+        "frames_read_ahead_median": float(np.median(log["ahead_frames"][sel])) if ticks else None,
         "sched_fifo": bool(info["sched_fifo"]),
         "sched_note": info["sched_note"],
         "mlockall": bool(info.get("mlockall")),
