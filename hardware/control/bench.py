@@ -232,6 +232,8 @@ def run_bench(
         "tick_us_median": round(float(np.median(tick)), 1) if ticks else None,
         "tick_us_p99": round(float(np.percentile(tick, 99)), 1) if ticks else None,
         "tick_us_max": round(float(tick.max()), 1) if ticks else None,
+        # The same over the ticks with the session ENABLED (a fault mid-run stops the haptics).
+        "tick_us_enabled": _stats(tick[enabled]),
         "misses": int(missed.sum()) + skipped,
         "misses_per_10k": (
             round(1e4 * (float(missed.sum()) + skipped) / (ticks + skipped), 2) if ticks else None
@@ -251,6 +253,8 @@ def run_bench(
         },
         "tick_without_emulator_us": _stats(tick - log["emulator_us"][sel]),
         # Frames decoded in the spin before the deadline, per tick (6 answers, heartbeats).
+        # Snapshots and refits put off to a later tick for want of time left in the period.
+        "deferred": res.get("deferred"),
         "frames_read_ahead_median": float(np.median(log["ahead_frames"][sel])) if ticks else None,
         "sched_fifo": bool(info["sched_fifo"]),
         "sched_note": info["sched_note"],

@@ -59,6 +59,7 @@ import numpy as np
 
 from ..drives.faults import FAULT_METHODS
 from .deadline import DeadlineLoop, lock_memory
+from .slack import Slack
 
 __all__ = [
     "EMULATOR_MODES",
@@ -154,6 +155,8 @@ _LOG_FIELDS = (
     "ahead_frames",
 )
 _MAX_EVENTS_PER_SNAPSHOT = 8
+#: Ticks in a row a snapshot or a refit may wait for time left in the period (:mod:`.slack`).
+_MAX_DEFER_TICKS = 8
 #: Events kept for the snapshots while none gets out (a reader that stopped reading).
 _MAX_PENDING_EVENTS = 256
 #: Ticks of fault-reset controlwords a reset request sends (the drives clear on its rising edge).
@@ -462,6 +465,11 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             return added
 
         ahead = [0.0, 0]  # time (µs) and frames of the last read ahead
+        # The snapshot and the refit wait for a tick with time left (at most 8 ticks, 10 ms):
+        # after a long tick either would push the body past the next deadline.
+        snap_slack = Slack(_MAX_DEFER_TICKS)
+        refit_slack = Slack(_MAX_DEFER_TICKS)
+        snap_due = False
 
         def read_ahead() -> None:
             # The drives answered the last SYNC during the period: their frames are decoded in
@@ -472,7 +480,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
 
         while running:
             ahead[0], ahead[1] = 0.0, 0
-            k, _ = dl.wait(read_ahead)
+            k, t_k = dl.wait(read_ahead)
+            next_deadline = t_k + period
             p0 = time.perf_counter()
             t = time.monotonic()
             fb = link.poll_feedback()
@@ -608,6 +617,10 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 log_tau[i] = sent
                 log_hip[i] = hip_now
             if i % snap_every == 0:
+                snap_due = True
+            if snap_due and snap_slack.fits(next_deadline - time.perf_counter()):
+                snap_due = False
+                s0 = time.perf_counter()
                 # Session and watchdog changes since the last snapshot that got out.
                 last_tr = _collect(machine.log, last_tr, pending_events, "state", _state_text)
                 last_r = _collect(wd.log, last_r, pending_events, "reaction", _reaction_text)
@@ -659,11 +672,13 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                     # Nobody reads the snapshots: keep the newest (the result keeps them all).
                     events_dropped += len(pending_events) - _MAX_PENDING_EVENTS
                     del pending_events[:-_MAX_PENDING_EVENTS]
+                snap_slack.record(time.perf_counter() - s0)
             p5 = time.perf_counter()
-            if estimates_waiting:
+            if estimates_waiting and refit_slack.fits(next_deadline - p5):
                 estimates_waiting = False
                 if take_estimates(t) and fusion is not None:
                     fusion.prepare()
+                refit_slack.record(time.perf_counter() - p5)
             if i < cap:
                 p_end = time.perf_counter()
                 log["publish_us"][i] = (p5 - p4) * 1e6
@@ -712,6 +727,10 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 # Changes no snapshot carried yet; the parent hands them on in one more snapshot.
                 "pending_events": pending_events[-_MAX_PENDING_EVENTS:],
                 "events_dropped": events_dropped,
+                "deferred": {
+                    name: {"deferred": sl.deferred, "forced": sl.forced}
+                    for name, sl in (("snapshot", snap_slack), ("refit", refit_slack))
+                },
                 "log": {f: a[:m].copy() for f, a in log.items()}
                 | {"tau_sent": log_tau[:m].copy(), "hip_m": log_hip[:m].copy()},
                 "bus_schedule": _busy_per_cycle(cfg),
