@@ -18,7 +18,6 @@ halting, what ``cyclictest`` does); needs root.
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import multiprocessing as mp
 import os
@@ -36,55 +35,54 @@ STALL_S = 1e-3
 
 def probe(cpu: int, duration_s: float, conn: Any) -> None:
     """One 800 Hz loop on ``cpu``; sends ``[kind, t (monotonic), ms, switched_out]`` stalls."""
-    from hapticloud.hardware.control.deadline import lock_memory, try_sched_fifo
+    from hapticloud.hardware.control.deadline import DeadlineLoop, lock_memory
 
     os.sched_setaffinity(0, {cpu})
-    fifo, _ = try_sched_fifo(80)
     lock_memory()
-    gc.collect()
-    gc.freeze()
-    gc.disable()
-    clock = time.monotonic
+    # The control loop's own pacing: sleep to SPIN_S before each deadline, spin to it.
+    loop = DeadlineLoop(PERIOD_S, spin_s=SPIN_S, fifo_priority=80)
+    clock = time.perf_counter  # CLOCK_MONOTONIC, as time.monotonic
 
     def switches() -> int:
         return resource.getrusage(resource.RUSAGE_THREAD).ru_nivcsw
 
     stalls: list[tuple[str, float, float, bool]] = []
-    t0 = clock() + 0.05
-    end = t0 + duration_s
-    k = ticks = 0
-    last = clock()
-    seen = switches()
-    while True:
-        k += 1
-        t_k = t0 + k * PERIOD_S
-        now = clock()
-        if now > end:
-            break
-        if now - t_k > PERIOD_S:  # behind: resume on the next future deadline
-            k = int((now - t0) / PERIOD_S) + 1
-            t_k = t0 + k * PERIOD_S
-        wake = t_k - SPIN_S
-        seen = switches()
-        if wake > now:
-            time.sleep(wake - now)
-            last = clock()
-            if last - wake > STALL_S:
-                n = switches()
-                stalls.append(("sleep", wake, 1e3 * (last - wake), n != seen))
-                seen = n
-        stop = t_k + WORK_S
+    loop.start()
+    end = clock() + duration_s
+    try:
         while True:
-            t = clock()
-            if t - last > STALL_S:
-                n = switches()
-                stalls.append(("run", last, 1e3 * (t - last), n != seen))
-                seen = n
-            last = t
-            if t >= stop:
+            seen = switches()
+            _, t_k = loop.wait()
+            last = clock()
+            if last > end:
                 break
-        ticks += 1
-    conn.send({"cpu": cpu, "sched_fifo": fifo, "ticks": ticks, "stalls": stalls})
+            if last - t_k > STALL_S:
+                n = switches()
+                stalls.append(("wake", t_k, 1e3 * (last - t_k), n != seen))
+                seen = n
+            stop = t_k + WORK_S
+            while True:
+                t = clock()
+                if t - last > STALL_S:
+                    n = switches()
+                    stalls.append(("run", last, 1e3 * (t - last), n != seen))
+                    seen = n
+                last = t
+                if t >= stop:
+                    break
+            loop.done()
+    finally:
+        loop.stop()
+    st = loop.stats()
+    conn.send(
+        {
+            "cpu": cpu,
+            "sched_fifo": st.sched_fifo,
+            "ticks": st.ticks,
+            "misses": st.misses + st.skipped,
+            "stalls": stalls,
+        }
+    )
 
 
 def _steal() -> dict[int, int]:
