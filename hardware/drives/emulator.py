@@ -150,10 +150,15 @@ class EmulatorConfig(StageConfig):
     auto_start: bool = param(False, doc="drives go OPERATIONAL without an NMT start")
 
 
+_STALL_REPORT_S = 0.005
+"""A gap longer than this between two wake-ups of the drives' thread is logged as a ``stall``."""
+
+
 class EmulatorEvent(NamedTuple):
     """Something an emulated drive did: ``kind`` is ``"state"`` (``detail``: new state name),
-    ``"fault"`` (``detail``: error code), ``"nmt"`` (new NMT state), ``"command_timeout"`` or
-    ``"physics_skip"``; ``t`` in the emulator's clock, ``drive`` -1 for the whole emulator."""
+    ``"fault"`` (``detail``: error code), ``"nmt"`` (new NMT state), ``"command_timeout"``,
+    ``"physics_skip"`` or ``"stall"`` (the drives' thread did not run for ``detail``, more than
+    5 ms); ``t`` in the emulator's clock, ``drive`` -1 for the whole emulator."""
 
     t: float
     drive: int
@@ -365,6 +370,7 @@ class DriveEmulator(can.Listener):
     # ----- thread ------------------------------------------------------------------------------
     def _run(self) -> None:
         bus = self._bus
+        last = self._clock()
         while not self._stop.is_set():
             wait = min(max(self.next_due() - self._clock(), 0.0), 0.002)
             try:
@@ -373,6 +379,12 @@ class DriveEmulator(can.Listener):
                 break
             with self._lock:
                 now = self._clock()
+                if now - last > _STALL_REPORT_S:
+                    # The thread waits 2 ms at most: it did not run (the machine's doing), and
+                    # every answer of that time came late. Said, so that a late-feedback
+                    # reaction of the loop can be told from a fault of the loop's own.
+                    self._event(now, -1, "stall", f"{now - last:.6f} s")
+                last = now
                 self._begin(now)
                 while msg is not None:
                     self._receive(msg, now)
