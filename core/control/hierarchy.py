@@ -190,6 +190,29 @@ def _finite_sum(*arrays: FloatArray) -> bool:
     return math.isfinite(total)
 
 
+class _Layout(NamedTuple):
+    """What the rows per level imply, worked out once per layout (a few recur tick after tick)."""
+
+    #: DAQP's break points with the first level hard, and with a leading 0 (every level soft).
+    hard_points: NDArray[np.intc]
+    soft_points: NDArray[np.intc]
+    #: The levels with rows and the index of their first row (``reduceat`` needs both).
+    nonempty: NDArray[np.intp]
+    starts: NDArray[np.intp]
+
+
+def _layout(counts: Sequence[int]) -> _Layout:
+    ends = list(itertools.accumulate(counts))
+    nonempty = [k for k, c in enumerate(counts) if c]
+    starts = [0, *ends]
+    return _Layout(
+        np.array(ends, dtype=np.intc),
+        np.array([0, *ends], dtype=np.intc),
+        np.array(nonempty, dtype=np.intp),
+        np.array([starts[k] for k in nonempty], dtype=np.intp),
+    )
+
+
 class StackedLevels(Sequence[Sequence[Task]]):
     """A hierarchy its builder has already stacked into DAQP's arrays (private to the package).
 
@@ -290,7 +313,7 @@ class HierarchicalSolver:
         self._sense = np.zeros(max(int(capacity), 1), dtype=np.intc)
         self._minus_inf = np.full(max(int(capacity), 1), -DAQP_INF)
         self._minus_inf.setflags(write=False)
-        self._segments: dict[tuple[int, ...], tuple[NDArray[np.intp], NDArray[np.intp]]] = {}
+        self._layouts: dict[tuple[int, ...], _Layout] = {}
 
     # ----- assembly -------------------------------------------------------------------------------
     def _stack(
@@ -407,15 +430,17 @@ class HierarchicalSolver:
         else:
             A_d, bu_d, bl_d = A, bu, bl
 
-        ends = list(itertools.accumulate(counts))
+        layout = self._layout(counts)
         hard = self.config.hard_top_level and counts[0] > 0
         solver = "daqp" if hard else "daqp_soft"
-        x, flag, iters = self._daqp(A_d, bu_d, bl_d, ends, hard)
+        x, flag, iters = self._daqp(
+            A_d, bu_d, bl_d, layout.hard_points if hard else layout.soft_points
+        )
         if hard and flag not in _EXIT_SUCCESS:
             # Infeasible hard top level (-1, or 3 when a later level could not start from it),
             # dependent equalities (-6), or any other failure: retry with every level soft.
             solver = "daqp_soft"
-            x, flag, iters = self._daqp(A_d, bu_d, bl_d, ends, False)
+            x, flag, iters = self._daqp(A_d, bu_d, bl_d, layout.soft_points)
         if flag not in _EXIT_SUCCESS or not _finite_sum(x):
             x, solver = self._fallback(levels)
             if x is None:
@@ -423,7 +448,7 @@ class HierarchicalSolver:
                     np.zeros(self.n_vars), SolveStatus.FAILED, n_levels, m, "", flag, iters, t0
                 )
 
-        slack, satisfied, active = self._report(A, bu, bl, nu, counts, x)
+        slack, satisfied, active = self._report(A, bu, bl, nu, layout, x)
         # A hard top level DAQP accepted is feasible; what the tolerance sees there is drift.
         top_ok = solver == "daqp" or bool(satisfied[0])
         if not top_ok:
@@ -460,8 +485,18 @@ class HierarchicalSolver:
             raise InputError(f"x: expected shape ({self.n_vars},), got {x.shape}")
         np.minimum(bu, DAQP_INF, out=bu)
         nu = np.sqrt((A * A).dot(self._inv_metric))
-        slack, satisfied, _ = self._report(A, bu, bl, nu, counts, x)
+        slack, satisfied, _ = self._report(A, bu, bl, nu, self._layout(counts), x)
         return slack, satisfied
+
+    def _layout(self, counts: list[int]) -> _Layout:
+        """The :class:`_Layout` of ``counts`` (cached: a few layouts recur tick after tick)."""
+        key = tuple(counts)
+        layout = self._layouts.get(key)
+        if layout is None:
+            layout = _layout(counts)
+            if len(self._layouts) < 64:
+                self._layouts[key] = layout
+        return layout
 
     def _report(
         self,
@@ -469,12 +504,12 @@ class HierarchicalSolver:
         bu: FloatArray,
         bl: FloatArray,
         nu: FloatArray,
-        counts: list[int],
+        layout: _Layout,
         x: FloatArray,
     ) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
         # For an equality bl == bu, so max(Ax - bu, bl - Ax) is |Ax - b|; for an inequality
         # bl = -1e30 leaves Ax - h. Rows within tolerance of their bound are active.
-        n_levels = len(counts)
+        n_levels = layout.hard_points.shape[0]
         slack = np.zeros(n_levels)
         satisfied = np.ones(n_levels, dtype=bool)
         if A.shape[0] == 0:
@@ -488,34 +523,24 @@ class HierarchicalSolver:
         minus_tol *= -self.config.feasibility_tol
         active = beyond >= minus_tol
         viol = np.maximum(beyond, 0.0)
-        key = tuple(counts)
-        segments = self._segments.get(key)
-        if segments is None:
-            nonempty = [k for k, c in enumerate(counts) if c]
-            starts = list(itertools.accumulate([0, *counts]))
-            segments = (
-                np.array(nonempty, dtype=np.intp),
-                np.array([starts[k] for k in nonempty], dtype=np.intp),
-            )
-            if len(self._segments) < 64:  # a few layouts recur tick after tick
-                self._segments[key] = segments
-        nonempty, starts = segments
+        nonempty, starts = layout.nonempty, layout.starts
         slack[nonempty] = np.sqrt(np.add.reduceat(viol * viol, starts))
         viol += minus_tol
         satisfied[nonempty] = np.maximum.reduceat(viol, starts) <= 0.0
         return slack, satisfied, active
 
     def _daqp(
-        self, A: FloatArray, bu: FloatArray, bl: FloatArray, ends: list[int], hard_top: bool
+        self, A: FloatArray, bu: FloatArray, bl: FloatArray, break_points: NDArray[np.intc]
     ) -> tuple[FloatArray, int, int]:
+        """One DAQP call; ``break_points`` from a :class:`_Layout` (a leading 0 is an empty hard
+        level: every real level is then soft). DAQP only reads them (it takes no read-only
+        buffers, so the cached arrays stay writable; ``tests/test_contact_fast_paths.py``)."""
         m = A.shape[0]
-        # A leading break point at 0 is an empty hard level: every real level becomes soft.
-        bp = np.array(ends if hard_top else [0, *ends], dtype=np.intc)
         if self._sense.shape[0] < m:
             self._sense = np.zeros(2 * m, dtype=np.intc)
         # DAQP copies sense into its workspace, so one zero buffer serves every call.
         x, _, flag, info = daqp.solve(
-            self._H, self._f, A, bu, bl, self._sense[:m], bp, **self._settings
+            self._H, self._f, A, bu, bl, self._sense[:m], break_points, **self._settings
         )
         return x, int(flag), int(info["iterations"])
 
