@@ -784,16 +784,18 @@ class HapticLoop:
         gs = tangents.dot(J)
         G, hv, kind = self._G, self._h, self._kind
         G[m : m + k, :n] = gs
-        np.negative(gs, out=G[m + k : m + 2 * k, :n])
+        G[m + k : m + 2 * k, :n] = -gs  # cheaper than np.negative(out=) into a strided view
         # A band of +-TANGENT_BAND around the free acceleration, not an exact equality: two
         # opposite rows with equal bounds are degenerate for DAQP, which then failed now and then
         # (3 ticks in the wall scene) and fell back to the 1.5 ms cascade.
         if qdd5 is None:
             hv[m : m + 2 * k] = TANGENT_BAND_M_S2
         else:
-            a = gs.dot(qdd5)
-            np.add(a, TANGENT_BAND_M_S2, out=hv[m : m + k])
-            np.subtract(TANGENT_BAND_M_S2, a, out=hv[m + k : m + 2 * k])
+            # Both bounds from Python floats in one assignment: a sum or difference of two
+            # doubles rounds the same in Python as in numpy, and this saves two ufunc calls.
+            a = gs.dot(qdd5).tolist()
+            band = TANGENT_BAND_M_S2
+            hv[m : m + 2 * k] = [ai + band for ai in a] + [band - ai for ai in a]
         kind[m : m + 2 * k] = [0] * (2 * k)
         return m + 2 * k
 

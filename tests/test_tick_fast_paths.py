@@ -20,7 +20,14 @@ from hapticloud.core.control import (
 from hapticloud.core.control.hierarchy import StackedLevels
 from hapticloud.core.errors import InputError
 from hapticloud.core.fusion import FusionConfig, SurfaceFusion
-from hapticloud.core.loop import HapticLoop, HapticsConfig, Wall, build_controller
+from hapticloud.core.loop import (
+    TANGENT_BAND_M_S2,
+    HapticLoop,
+    HapticsConfig,
+    Wall,
+    _tangents,
+    build_controller,
+)
 from hapticloud.core.perception.estimate import SurfaceEstimate
 from hapticloud.core.robot import RobotModel
 
@@ -209,3 +216,23 @@ def test_loop_on_another_robot_type_gives_the_same_tick(robot: RobotModel) -> No
     np.testing.assert_array_equal(a.qdd, b.qdd)
     assert (a.status, a.rows, a.clamped) == (b.status, b.rows, b.clamped)
     assert a.rows  # the wall is within reach: rows were built and solved
+
+
+def test_tangential_rows_match_the_array_expressions(robot: RobotModel) -> None:
+    _, _, _, _, _, J, _ = _state(robot, 4)
+    ctrl = build_controller(robot, None, [])
+    loop = HapticLoop(robot, ctrl, hip_radius_m=0.04, dt=DT)
+    n = robot.n_joints
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        normal = rng.normal(size=3)
+        normal /= np.linalg.norm(normal)
+        qdd5 = rng.normal(size=n)
+        m = loop._tangential_rows(J, [normal], qdd5, 1)
+        assert m == 5
+        gs = _tangents(normal).dot(J)
+        a = gs.dot(qdd5)
+        np.testing.assert_array_equal(loop._G[1:5, :n], np.concatenate([gs, -gs]))
+        np.testing.assert_array_equal(
+            loop._h[1:5], np.concatenate([a + TANGENT_BAND_M_S2, TANGENT_BAND_M_S2 - a])
+        )
