@@ -124,3 +124,8 @@ def test_bench_loop_prints_one_json_object(capsys) -> None:
     result = json.loads(out)
     for key in ("tick_us_median", "tick_us_p99", "misses_per_10k"):
         assert result[key] >= 0.0
+    # The controller's cost on the ticks that solve, apart from the (mostly skipping) others.
+    assert 0.0 <= result["solving_fraction"] <= 1.0
+    solving = result["controller_step_us_median_solving"]
+    assert (solving is None) == (result["solving_fraction"] == 0.0)
+    assert (result["solve_us_median_solving"] is None) == (solving is None)
