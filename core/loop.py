@@ -47,6 +47,7 @@ from .control import (
     HierarchicalController,
     Inequality,
 )
+from .control.controller import StepInputs
 from .errors import InputError
 from .fusion import FusedSurface, SurfaceFusion
 from .haptics import (
@@ -513,8 +514,7 @@ class HapticLoop:
             # The controller's step without re-converting what the robot model validated (float
             # arrays of the right shapes, dt checked in __init__); its checks on values stay.
             step = self.controller._step_checked if self._trusted else self._step_public
-            out = step(
-                time.perf_counter(),
+            inputs = StepInputs(
                 robot.q,
                 robot.qd,
                 M,
@@ -528,6 +528,7 @@ class HapticLoop:
                 motion,
                 tau_int,
             )
+            out = step(time.perf_counter(), inputs)
             # Relaxed: a constraint bound (level 5 gave way), so the next tick likely solves too.
             self._solved_last = out.status is not ControlStatus.OK
         else:
@@ -556,36 +557,21 @@ class HapticLoop:
             out.clamped,
         )
 
-    def _step_public(
-        self,
-        t0: float,
-        q: FloatArray,
-        qd: FloatArray,
-        M: FloatArray,
-        h: FloatArray,
-        dt: float,
-        hip_position: FloatArray,
-        hip_jacobian: FloatArray,
-        hip_jdot_qd: FloatArray,
-        haptic_rows: list[Inequality],
-        wall_rows: tuple[()],
-        motion: Equality | None,
-        tau_int: FloatArray | None,
-    ) -> ControlOutput:
+    def _step_public(self, t0: float, inputs: StepInputs) -> ControlOutput:
         """The controller's checked :meth:`~HierarchicalController.step`, for any other robot."""
         return self.controller.step(
-            q,
-            qd,
-            M,
-            h,
-            dt,
-            hip_position=hip_position,
-            hip_jacobian=hip_jacobian,
-            hip_jdot_qd=hip_jdot_qd,
-            haptic_rows=haptic_rows,
-            wall_rows=wall_rows,
-            motion=motion,
-            interaction_torque=tau_int,
+            inputs.q,
+            inputs.qd,
+            inputs.M,
+            inputs.h,
+            inputs.dt,
+            hip_position=inputs.hip_position,
+            hip_jacobian=inputs.hip_jacobian,
+            hip_jdot_qd=inputs.hip_jdot_qd,
+            haptic_rows=inputs.haptic_rows,
+            wall_rows=inputs.wall_rows,
+            motion=inputs.motion,
+            interaction_torque=inputs.interaction_torque,
         )
 
     def _shortcut(

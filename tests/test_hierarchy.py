@@ -17,6 +17,7 @@ from hapticloud.core.control import (
     solve_hierarchy,
 )
 from hapticloud.core.control import hierarchy as hierarchy_module
+from hapticloud.core.control.controller import StepInputs
 from hapticloud.core.errors import ConfigError, InputError
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -279,7 +280,7 @@ def _manipulator_problems(count: int) -> list[tuple[list, np.ndarray]]:
         if rng.random() < 0.5:
             motion = HipMotionTask(n).rows(p, J, jd, qd, p + rng.normal(size=3) * 0.2)
         levels = ctrl._levels(
-            q, qd, M, data.nle.copy(), 1 / 800, p, J, jd, haptic, [], motion, None
+            StepInputs(q, qd, M, data.nle.copy(), 1 / 800, p, J, jd, haptic, [], motion, None)
         )
         out.append((levels, ctrl.solver.metric))
     return out

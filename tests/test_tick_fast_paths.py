@@ -17,6 +17,7 @@ from hapticloud.core.control import (
     HierarchicalController,
     Inequality,
 )
+from hapticloud.core.control.controller import StepInputs
 from hapticloud.core.control.hierarchy import StackedLevels
 from hapticloud.core.errors import InputError
 from hapticloud.core.fusion import FusionConfig, SurfaceFusion
@@ -72,9 +73,9 @@ def test_stacked_rows_are_the_stacked_row_objects(robot: RobotModel, level: str,
     motion = None if seed % 2 else Equality(rng.normal(size=(3, 2 * n)), rng.normal(size=3), "m")
     tau_int = None if seed == 3 else rng.normal(size=n)
     for _ in range(2):  # twice: the buffers' second use must not see the first's rows
-        args = (q, qd, M, h, DT, p, J, jd, haptic, extra, motion, tau_int)
-        stacked = ctrl._stacked(*args)
-        A, bu, bl, counts = ctrl.solver._stack(ctrl._levels(*args))
+        args = StepInputs(q, qd, M, h, DT, p, J, jd, haptic, extra, motion, tau_int)
+        stacked = ctrl._stacked(args)
+        A, bu, bl, counts = ctrl.solver._stack(ctrl._levels(args))
         assert isinstance(stacked, StackedLevels)
         assert stacked.counts == counts
         np.testing.assert_array_equal(stacked.A, A)
@@ -90,7 +91,7 @@ def test_step_results_match_the_row_object_solve(robot: RobotModel) -> None:
     G = np.concatenate([-np.array([0.0, 0.0, 1.0]) @ J, np.zeros(n)])[None, :]
     rows = [Inequality(G, np.array([-5.0]), "haptic")]
     out = ctrl.step(q, qd, M, h, DT, haptic_rows=rows)
-    levels = ctrl._levels(q, qd, M, h, DT, None, None, None, rows, [], None, None)
+    levels = ctrl._levels(StepInputs(q, qd, M, h, DT, None, None, None, rows, [], None, None))
     ref = ctrl.solver.solve(levels)
     np.testing.assert_array_equal(out.qdd, ref.x[:n])
     assert out.status.value == ("ok" if ref.level_satisfied[1:5].all() else "relaxed")

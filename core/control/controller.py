@@ -129,6 +129,24 @@ class ControllerConfig(StageConfig):
     solver: HierarchyConfig = nested(HierarchyConfig)
 
 
+class StepInputs(NamedTuple):
+    """What one :meth:`HierarchicalController.step` works from, converted to float64 and
+    shape-checked (the haptic loop builds it from the robot model's validated state)."""
+
+    q: FloatArray
+    qd: FloatArray
+    M: FloatArray
+    h: FloatArray
+    dt: float
+    hip_position: FloatArray | None
+    hip_jacobian: FloatArray | None
+    hip_jdot_qd: FloatArray | None
+    haptic_rows: Sequence[Inequality]
+    wall_rows: Sequence[Inequality]
+    motion: Equality | None
+    interaction_torque: FloatArray | None
+
+
 class ControlOutput(NamedTuple):
     """What :meth:`HierarchicalController.step` returns.
 
@@ -385,36 +403,23 @@ class HierarchicalController:
             interaction_torque = np.asarray(interaction_torque, dtype=np.float64)
         return self._step_checked(
             t0,
-            q,
-            qd,
-            M,
-            h,
-            dt_value,
-            hip_position,
-            hip_jacobian,
-            hip_jdot_qd,
-            haptic_rows,
-            wall_rows,
-            motion,
-            interaction_torque,
+            StepInputs(
+                q,
+                qd,
+                M,
+                h,
+                dt_value,
+                hip_position,
+                hip_jacobian,
+                hip_jdot_qd,
+                haptic_rows,
+                wall_rows,
+                motion,
+                interaction_torque,
+            ),
         )
 
-    def _step_checked(
-        self,
-        t0: float,
-        q: FloatArray,
-        qd: FloatArray,
-        M: FloatArray,
-        h: FloatArray,
-        dt_value: float,
-        hip_position: FloatArray | None,
-        hip_jacobian: FloatArray | None,
-        hip_jdot_qd: FloatArray | None,
-        haptic_rows: Sequence[Inequality],
-        wall_rows: Sequence[Inequality],
-        motion: Equality | None,
-        interaction_torque: FloatArray | None,
-    ) -> ControlOutput:
+    def _step_checked(self, t0: float, inputs: StepInputs) -> ControlOutput:
         """:meth:`step` after its argument conversion and shape checks (``t0``: its start).
 
         For a caller whose arrays are already float64 of the right shapes and ``dt`` a positive
@@ -424,52 +429,14 @@ class HierarchicalController:
         # q, qd, M, h and tau_int always enter rows (joint limits, dynamics) and the solver
         # rejects non-finite rows; the HIP enters rows only while a wall is near, so it gets a
         # look of its own (a sum is finite only if every entry is).
-        if not _finite_total((hip_position, hip_jacobian, hip_jdot_qd)):
-            return self._non_finite_fault(
-                t0,
-                q,
-                qd,
-                M,
-                h,
-                hip_position,
-                hip_jacobian,
-                hip_jdot_qd,
-                interaction_torque,
-                haptic_rows,
-                wall_rows,
-                motion,
-            )
+        if not _finite_total((inputs.hip_position, inputs.hip_jacobian, inputs.hip_jdot_qd)):
+            return self._non_finite_fault(t0, inputs)
 
-        levels = self._stacked(
-            q,
-            qd,
-            M,
-            h,
-            dt_value,
-            hip_position,
-            hip_jacobian,
-            hip_jdot_qd,
-            haptic_rows,
-            wall_rows,
-            motion,
-            interaction_torque,
-        )
+        levels = self._stacked(inputs)
         result = self.solver.solve(levels)
         if result.status == SolveStatus.INVALID_INPUT:
-            return self._non_finite_fault(
-                t0,
-                q,
-                qd,
-                M,
-                h,
-                hip_position,
-                hip_jacobian,
-                hip_jdot_qd,
-                interaction_torque,
-                haptic_rows,
-                wall_rows,
-                motion,
-            )
+            return self._non_finite_fault(t0, inputs)
+        M, h, interaction_torque = inputs.M, inputs.h, inputs.interaction_torque
         if result.status not in _USABLE:
             return self._compensation(
                 M, h, interaction_torque, result.solve_us, f"solver: {result.status.value}", t0
@@ -516,27 +483,27 @@ class HierarchicalController:
         A[self._o_vel : self._o_vel + 2 * n] = self.velocity_limit._G
         self._A, self._bu, self._bl = A, bu, bl
 
-    def _stacked(
-        self,
-        q: FloatArray,
-        qd: FloatArray,
-        M: FloatArray,
-        h: FloatArray,
-        dt: float,
-        hip_position: ArrayLike | None,
-        hip_jacobian: ArrayLike | None,
-        hip_jdot_qd: ArrayLike | None,
-        haptic_rows: Sequence[Inequality],
-        wall_rows: Sequence[Inequality],
-        motion: Equality | None,
-        interaction_torque: ArrayLike | None,
-    ) -> StackedLevels:
+    def _stacked(self, inputs: StepInputs) -> StackedLevels:
         """The rows of :meth:`_levels`, written straight into the solver's stacked form.
 
         Same values, same order, same checks (and messages) as building the row objects and
         stacking them (``tests/test_controller.py`` compares both); the levels as row objects
         are built only if something asks for them (the fallback cascade).
         """
+        (
+            q,
+            qd,
+            M,
+            h,
+            dt,
+            hip_position,
+            hip_jacobian,
+            hip_jdot_qd,
+            haptic_rows,
+            wall_rows,
+            motion,
+            interaction_torque,
+        ) = inputs
         n = self.n_joints
         solver = self.solver
         # The tasks' own argument checks, in the order _levels meets them.
@@ -597,52 +564,25 @@ class HierarchicalController:
                 bu[r : r + k] = vec
                 bl[r : r + k] = vec if eq else -DAQP_INF
                 r += k
+        return StackedLevels(A[:r], bu[:r], bl[:r], counts, lambda: self._levels(inputs))
 
-        def build() -> list[list[Equality | Inequality]]:
-            return self._levels(
-                q,
-                qd,
-                M,
-                h,
-                dt,
-                hip_position,
-                hip_jacobian,
-                hip_jdot_qd,
-                haptic_rows,
-                wall_rows,
-                motion,
-                interaction_torque,
-            )
-
-        return StackedLevels(A[:r], bu[:r], bl[:r], counts, build)
-
-    def _levels(
-        self,
-        q: FloatArray,
-        qd: FloatArray,
-        M: FloatArray,
-        h: FloatArray,
-        dt: float,
-        hip_position: ArrayLike | None,
-        hip_jacobian: ArrayLike | None,
-        hip_jdot_qd: ArrayLike | None,
-        haptic_rows: Sequence[Inequality],
-        wall_rows: Sequence[Inequality],
-        motion: Equality | None,
-        interaction_torque: ArrayLike | None,
-    ) -> list[list[Equality | Inequality]]:
+    def _levels(self, inputs: StepInputs) -> list[list[Equality | Inequality]]:
+        qd, dt, motion = inputs.qd, inputs.dt, inputs.motion
         torque = self.torque_limit.rows()
         dynamics_level = self.config.torque_limit_level == "dynamics"
-        level1: list[Equality | Inequality] = [self.eom.rows(M, h, interaction_torque)]
+        level1: list[Equality | Inequality] = [
+            self.eom.rows(inputs.M, inputs.h, inputs.interaction_torque)
+        ]
         level2: list[Equality | Inequality] = [
-            self.position_limit.rows(q, qd, dt),
+            self.position_limit.rows(inputs.q, qd, dt),
             self.velocity_limit.rows(qd, dt),
         ]
         (level1 if dynamics_level else level2).append(torque)
-        level3: list[Equality | Inequality] = list(wall_rows)
+        level3: list[Equality | Inequality] = list(inputs.wall_rows)
         if self.walls is not None:
-            level3.insert(0, self.walls.rows(hip_position, hip_jacobian, hip_jdot_qd, qd, dt))
-        level4: list[Equality | Inequality] = list(haptic_rows)
+            hip = (inputs.hip_position, inputs.hip_jacobian, inputs.hip_jdot_qd)
+            level3.insert(0, self.walls.rows(*hip, qd, dt))
+        level4: list[Equality | Inequality] = list(inputs.haptic_rows)
         rest = self.min_acceleration.rows(qd)
         if motion is None:
             return [level1, level2, level3, level4, [rest], []]
@@ -650,31 +590,20 @@ class HierarchicalController:
 
     # ----- safe outputs ---------------------------------------------------------------------------
     @staticmethod
-    def _culprits(
-        q: FloatArray,
-        qd: FloatArray,
-        M: FloatArray,
-        h: FloatArray,
-        hip_position: ArrayLike | None,
-        hip_jacobian: ArrayLike | None,
-        hip_jdot_qd: ArrayLike | None,
-        interaction_torque: ArrayLike | None,
-        haptic_rows: Sequence[Inequality],
-        wall_rows: Sequence[Inequality],
-        motion: Equality | None,
-    ) -> list[str]:
+    def _culprits(inputs: StepInputs) -> list[str]:
         """Names of the inputs holding NaN or inf (only computed once a fault is found)."""
         bad = _nonfinite(
-            q=q,
-            qd=qd,
-            mass_matrix=M,
-            nonlinear_effects=h,
-            hip_position=hip_position,
-            hip_jacobian=hip_jacobian,
-            hip_jdot_qd=hip_jdot_qd,
-            interaction_torque=interaction_torque,
+            q=inputs.q,
+            qd=inputs.qd,
+            mass_matrix=inputs.M,
+            nonlinear_effects=inputs.h,
+            hip_position=inputs.hip_position,
+            hip_jacobian=inputs.hip_jacobian,
+            hip_jdot_qd=inputs.hip_jdot_qd,
+            interaction_torque=inputs.interaction_torque,
         )
-        bad += _bad_rows([*haptic_rows, *wall_rows, *([motion] if motion is not None else [])])
+        motion = [inputs.motion] if inputs.motion is not None else []
+        bad += _bad_rows([*inputs.haptic_rows, *inputs.wall_rows, *motion])
         return bad or ["overflow in the rows built from the state"]
 
     def _predict(
@@ -715,9 +644,9 @@ class HierarchicalController:
             reason,
         )
 
-    def _non_finite_fault(self, t0: float, *inputs: Any) -> ControlOutput:
-        """Zero torque and a FAULT naming the ``inputs`` (as in :meth:`_culprits`) not finite."""
-        return self._fault("non-finite input: " + ", ".join(self._culprits(*inputs)), t0)
+    def _non_finite_fault(self, t0: float, inputs: StepInputs) -> ControlOutput:
+        """Zero torque and a FAULT naming the inputs (as in :meth:`_culprits`) not finite."""
+        return self._fault("non-finite input: " + ", ".join(self._culprits(inputs)), t0)
 
     def _fault(self, reason: str, t0: float) -> ControlOutput:
         n = self.n_joints
