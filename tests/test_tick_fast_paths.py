@@ -19,6 +19,7 @@ from hapticloud.core.control import (
 )
 from hapticloud.core.control.controller import StepInputs
 from hapticloud.core.control.hierarchy import StackedLevels
+from hapticloud.core.control.reductions import finite_total
 from hapticloud.core.errors import InputError
 from hapticloud.core.fusion import FusionConfig, SurfaceFusion
 from hapticloud.core.loop import (
@@ -31,6 +32,8 @@ from hapticloud.core.loop import (
 )
 from hapticloud.core.perception.estimate import SurfaceEstimate
 from hapticloud.core.robot import RobotModel
+from hypothesis import given
+from hypothesis import strategies as st
 
 DT = 1.0 / 800.0
 
@@ -237,3 +240,22 @@ def test_tangential_rows_match_the_array_expressions(robot: RobotModel) -> None:
         np.testing.assert_array_equal(
             loop._h[1:5], np.concatenate([a + TANGENT_BAND_M_S2, TANGENT_BAND_M_S2 - a])
         )
+
+
+@given(
+    st.lists(
+        st.one_of(
+            st.none(),
+            st.lists(
+                st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([1e200, -1e308]),
+                max_size=6,
+            ),
+        ),
+        max_size=4,
+    )
+)
+def test_finite_total_is_whether_the_plain_sum_is_finite(parts) -> None:
+    arrays = tuple(None if p is None else np.array(p, dtype=np.float64) for p in parts)
+    with np.errstate(over="ignore", invalid="ignore"):
+        plain = sum(float(np.sum(a)) for a in arrays if a is not None)
+        assert finite_total(arrays) == math.isfinite(plain)

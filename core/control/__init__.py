@@ -8,6 +8,7 @@
   hierarchical mode;
 - :mod:`.cascade`: the same problem level by level with quadprog (cross-check and fallback);
 - :mod:`.controller`: the paper's priorities, torque clamping and fault handling.
+- :mod:`.reductions`: the cheap finiteness test and direct reductions both use on the hot path.
 """
 
 from .cascade import CascadeResult, solve_cascade

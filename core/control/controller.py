@@ -46,6 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..config import StageConfig, nested, param
 from ..errors import InputError
 from .hierarchy import DAQP_INF, HierarchicalSolver, HierarchyConfig, SolveStatus, StackedLevels
+from .reductions import and_reduce, finite_total, max_reduce
 from .rows import Equality, Inequality
 from .tasks import (
     EquationOfMotion,
@@ -78,12 +79,6 @@ LEVEL_NAMES: tuple[str, ...] = (
 
 # Torque beyond the limit by less than this (relative) is solver drift, not clamping.
 _CLAMP_RTOL = 1e-6
-
-# The reductions themselves: the ``a.sum()`` / ``a.max()`` / ``a.all()`` methods each add a
-# Python wrapper call (~1 us) on the 800 Hz path.
-_add_reduce = np.add.reduce
-_max_reduce = np.maximum.reduce
-_and_reduce = np.logical_and.reduce
 
 
 class ControlStatus(StrEnum):
@@ -179,26 +174,6 @@ class ControlOutput(NamedTuple):
     clamped: bool
     step_us: float = 0.0
     fault: str = ""
-
-
-def _finite_total(arrays: tuple[FloatArray | None, ...]) -> bool:
-    """Whether the sum of every entry of the ``arrays`` (``None`` skipped) is finite.
-
-    A finite sum of squares proves every entry finite and far from overflow (one dot product
-    per array instead of a sum through its wrapper); otherwise the sum itself decides.
-    """
-    squares = 0.0
-    for arr in arrays:
-        if arr is not None:
-            flat = arr.ravel()
-            squares += flat.dot(flat)
-    if math.isfinite(squares):
-        return True
-    total = 0.0
-    for arr in arrays:
-        if arr is not None:
-            total += _add_reduce(arr, None)
-    return math.isfinite(total)
 
 
 def _real(arr: NDArray) -> FloatArray:
@@ -429,7 +404,7 @@ class HierarchicalController:
         # q, qd, M, h and tau_int always enter rows (joint limits, dynamics) and the solver
         # rejects non-finite rows; the HIP enters rows only while a wall is near, so it gets a
         # look of its own (a sum is finite only if every entry is).
-        if not _finite_total((inputs.hip_position, inputs.hip_jacobian, inputs.hip_jdot_qd)):
+        if not finite_total((inputs.hip_position, inputs.hip_jacobian, inputs.hip_jdot_qd)):
             return self._non_finite_fault(t0, inputs)
 
         levels = self._stacked(inputs)
@@ -449,14 +424,14 @@ class HierarchicalController:
             tau_raw -= self.config.equation_of_motion.interaction_torque_scale * interaction_torque
         tau = np.minimum(np.maximum(tau_raw, self._minus_tau_max), self.tau_max)
         # The solver never returns a non-finite x; this sum is the last line of defence.
-        if not _finite_total((tau, qdd)):
+        if not finite_total((tau, qdd)):
             return self._fault("non-finite solution", t0)
         slack, satisfied = result.level_slack, result.level_satisfied
         clamped = False
-        if _max_reduce(np.abs(tau_raw) - self.tau_max) > 0.0:
+        if max_reduce(np.abs(tau_raw) - self.tau_max) > 0.0:
             # Keep qdd the model's answer to the torque actually sent; report only real clamping.
             qdd = self._predict(M, h, tau, interaction_torque)
-            clamped = bool(_max_reduce(np.abs(tau_raw) - self._clamp_threshold) > 0.0)
+            clamped = bool(max_reduce(np.abs(tau_raw) - self._clamp_threshold) > 0.0)
             if clamped:  # the levels are met differently now: report what is sent
                 slack, satisfied = self.solver.evaluate(levels, np.concatenate([qdd, tau]))
         # Level 1 holds by construction (tau rebuilt from qdd, then clamped). Level 6 only
@@ -464,7 +439,7 @@ class HierarchicalController:
         # does not make a step relaxed.
         slack = slack.copy()
         slack[0] = 0.0
-        status = ControlStatus.OK if _and_reduce(satisfied[1:5]) else ControlStatus.RELAXED
+        status = ControlStatus.OK if and_reduce(satisfied[1:5]) else ControlStatus.RELAXED
         return ControlOutput(
             tau, qdd, status, slack, result.solve_us, clamped, (time.perf_counter() - t0) * 1e6
         )
