@@ -48,6 +48,7 @@ from .control import (
     Inequality,
 )
 from .control.controller import StepInputs
+from .control.reductions import finite_total, or_reduce
 from .errors import InputError
 from .fusion import FusedSurface, SurfaceFusion
 from .haptics import (
@@ -83,8 +84,6 @@ _TIGHTER, _POS_TIGHTER = 8, 16
 
 #: A row counts as binding when ``G x`` is within this of ``h`` (m/s², solver tolerance scale).
 BINDING_TOL = 1e-6
-
-_any = np.logical_or.reduce
 
 _ZERO3 = np.zeros(3)
 _ZERO3.setflags(write=False)
@@ -604,11 +603,7 @@ class HapticLoop:
             tau = M.dot(qdd) + h
             if tau_int is not None:
                 tau -= ctrl.config.equation_of_motion.interaction_torque_scale * tau_int
-        # Finite sums of squares prove every entry finite (one call each); only when they are
-        # not (a NaN, an inf, or squares overflowing) is the sum itself looked at.
-        if not math.isfinite(qdd.dot(qdd) + tau.dot(tau)) and not math.isfinite(
-            float(qdd.sum() + tau.sum())
-        ):
+        if not finite_total((qdd, tau)):
             return None  # the controller reports the fault
         x = np.concatenate((qdd, tau))
         # The haptic rows first: in contact they are the ones that fail, and they are built.
@@ -642,7 +637,7 @@ class HapticLoop:
                 return None
         if ctrl.walls is not None:
             w = ctrl.walls.rows(hip.position, hip.jacobian, hip.jdot_qd, qd, self.dt)
-            if w.h.shape[0] and _any(w.G @ x > w.h + _SHORTCUT_TOL * (1.0 + np.abs(w.h))):
+            if w.h.shape[0] and or_reduce(w.G @ x > w.h + _SHORTCUT_TOL * (1.0 + np.abs(w.h))):
                 return None
         return ControlOutput(
             tau,

@@ -1,7 +1,7 @@
 """Cheap whole-array checks for the 800 Hz path, shared by the solver and the controller.
 
-The ufuncs' reductions are called directly: ``a.sum()``, ``a.min()``, ``a.max()`` and
-``a.all()`` each go through a Python wrapper (~1 µs apiece) to reach the very same reductions.
+The ufuncs' reductions are called directly: ``a.sum()``, ``a.min()``, ``a.max()``, ``a.all()``
+and ``a.any()`` each go through a Python wrapper (~1 µs apiece) to reach the same reductions.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ add_reduce = np.add.reduce
 min_reduce = np.minimum.reduce
 max_reduce = np.maximum.reduce
 and_reduce = np.logical_and.reduce
+or_reduce = np.logical_or.reduce
 
 
 def finite_total(arrays: tuple[NDArray[np.float64] | None, ...]) -> bool:
