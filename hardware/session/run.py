@@ -254,7 +254,8 @@ class _StateWaiter:
         self._cp = cp
         self._snaps = snaps
         self.last_change = ""
-        self.last_fault = ""
+        #: Every fault's state change, in order (one per entry into FAULT).
+        self.fault_changes: list[str] = []
 
     def _drain(self) -> None:
         for snap in self._cp.snapshots():
@@ -263,7 +264,7 @@ class _StateWaiter:
                 if kind == "state":
                     self.last_change = text
                     if text.startswith(f"{_STATE_NAMES[_FAULT]}:"):
-                        self.last_fault = text
+                        self.fault_changes.append(text)
 
     def wait(self, codes: tuple[int, ...], timeout_s: float) -> Any:
         """The loop's state once its code is one of ``codes``; raises after ``timeout_s``."""
@@ -295,18 +296,22 @@ class _StateWaiter:
         cause has cleared, as the operator would press Reset, at most :data:`_STARTUP_RESETS`
         times; returns those faults' state changes, which the report lists."""
         end = time.monotonic() + timeout_s
-        faults: list[str] = []
+        n_faults = 0
+
+        def named() -> list[str]:
+            # A fault's text comes with a snapshot, up to a few ticks after the state changed.
+            known = self.fault_changes[:n_faults]
+            return known + ["fault"] * (n_faults - len(known))
+
         while True:
             st = self.wait((_READY, _FAULT), max(0.0, end - time.monotonic()))
             if st.state_code == _READY:
-                return faults
-            # The fault's text comes with a snapshot, up to a few ticks after the state.
-            self.last_fault = ""
-            faults.append("fault")
-            if len(faults) > _STARTUP_RESETS:
+                return named()
+            n_faults += 1
+            if n_faults > _STARTUP_RESETS:
                 raise RuntimeError(
-                    f"control process: session faulted {len(faults)} times before enable "
-                    f"(last: {self.last_fault or faults[-2]})"
+                    f"control process: session faulted {n_faults} times before enable "
+                    f"(last: {named()[-1]})"
                 )
             # The loop refuses a reset while a torque-off cause is active: ask again until it
             # takes or the time is out.
@@ -321,10 +326,8 @@ class _StateWaiter:
                     if time.monotonic() >= end:
                         raise RuntimeError(
                             f"control process: session faulted before enable and its fault did "
-                            f"not clear in {timeout_s:g} s ({self.last_fault or 'fault'})"
+                            f"not clear in {timeout_s:g} s ({named()[-1]})"
                         ) from err
-                finally:
-                    faults[-1] = self.last_fault or faults[-1]
 
 
 def run_session(
