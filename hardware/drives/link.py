@@ -483,19 +483,8 @@ class DriveLink:
         try:
             self._bus.send(msg, self._send_timeout)
         except can.CanError:
-            self._c["send_errors"] += 1
-            self._consecutive_send_errors += 1
-            if (
-                self._consecutive_send_errors >= self._cfg.send_errors_for_bus_off
-                and not self._bus_off
-            ):
-                self._set_bus_off(True)
-            return False
-        self._consecutive_send_errors = 0
-        self._c["bus_time_s"] += self._durations.get(len(msg.data), 0.0)
-        if self._bus_off:
-            self._set_bus_off(False)
-        return True
+            return self._send_failed()
+        return self._sent(len(msg.data))
 
     def _set_bus_off(self, off: bool) -> None:
         if off and not self._bus_off:
