@@ -22,5 +22,9 @@ def test_bus_bench_reports_ticks_misses_and_the_machine_counters() -> None:
     assert ["ready", "enabled", "bench"] in [list(tr) for tr in res["transitions"]]
     for key in ("tick_us_p99", "misses_per_10k", "body_us", "breakdown_us"):
         assert key in res
+    # The enabled ticks apart; the answers read ahead of the deadline; the deferred work counted.
+    assert res["tick_us_enabled"]["median"] is not None
+    assert "ahead" in res["breakdown_us"] and res["frames_read_ahead_median"] >= 6.0
+    assert set(res["deferred"]) == {"snapshot", "refit"}
     if sys.platform.startswith("linux"):
         assert "thp_collapse_alloc" in res["machine_counters_during_run"]
