@@ -64,6 +64,13 @@ from .haptics import (
     haptic_state,
 )
 from .haptics.distance import check_dt
+from .haptics.unknown import (
+    SpaceState,
+    SurfaceGuard,
+    UnknownSpaceConfig,
+    free_proof_holds,
+    hold_acceleration,
+)
 from .perception import SurfaceEstimate
 from .validation import as_finite_scalar, as_unit_vector3, as_vector3
 
@@ -111,13 +118,6 @@ class HapticsConfig(StageConfig):
         unit="m",
         doc="extra distance the constraints keep beyond the HIP radius (estimate error allowance)",
     )
-    hold_lost_surface_s: float = param(
-        1.0,
-        lo=0.0,
-        hi=60.0,
-        unit="s",
-        doc="keep constraining against the last fused surface (still) this long after it is lost",
-    )
     exact_shortcut: bool = param(
         True,
         doc="skip the solver when the level-5 torques already meet every constraint (exact)",
@@ -129,6 +129,7 @@ class HapticsConfig(StageConfig):
     positional: PositionalConstraintConfig = nested(PositionalConstraintConfig)
     velocity: VelocityConstraintConfig = nested(VelocityConstraintConfig)
     force: ForceConstraintConfig = nested(ForceConstraintConfig)
+    unknown: UnknownSpaceConfig = nested(UnknownSpaceConfig)
 
     def paper(self) -> HapticsConfig:
         """The same parameters with the paper's formulation: no surface-velocity feed-forward."""
@@ -219,6 +220,9 @@ class TickResult(NamedTuple):
         Hierarchy solve, controller step, and the whole tick (µs).
     clamped
         The torque clamp changed the solver's torques.
+    space
+        What the tick knew of the space around the HIP (:class:`SpaceState`: known, holding the
+        last surface, stopped); always ``KNOWN`` in a scene without cameras.
     """
 
     tau: FloatArray
@@ -234,6 +238,7 @@ class TickResult(NamedTuple):
     step_us: float
     tick_us: float
     clamped: bool
+    space: SpaceState = SpaceState.KNOWN
 
 
 class HapticLoop:
@@ -313,8 +318,14 @@ class HapticLoop:
             for w in self.walls
         ]
         self._solved_last = False
-        self._held: SurfacePoint | None = None
-        self._held_t = -math.inf
+        #: Unknown is not free: what the tick does without a valid fused surface.
+        self.guard = SurfaceGuard(self.config.unknown)
+        # Level 5 of the position hold while stopped: [I, 0] x = qdd_hold.
+        a_hold = np.zeros((n, 2 * n))
+        a_hold[:, :n] = np.eye(n)
+        a_hold.setflags(write=False)
+        self._a_hold = a_hold
+        self._cap: float | None = None
         self._n_haptic = 0
         self._last_x: tuple[FloatArray, FloatArray] | None = None
         self.last_fused: FusedSurface | None = None
@@ -341,6 +352,8 @@ class HapticLoop:
             for region in {self.fused_region, *(w.part for w in self.walls)}
         }
         self.config = cfg
+        if hasattr(self, "guard"):
+            self.guard.configure(cfg.unknown)
         self.positional, self.velocity, self.force = positional, velocity, force
         self._force_limit = force_limit
         self._act_motion = max(
@@ -365,10 +378,14 @@ class HapticLoop:
                 )
                 self.tick(t, q, qd, fused=fused)
             self.tick(t, q, qd, interaction_torque=np.zeros(self.n_joints))
+            lost = FusedSurface(
+                t, hip, normal, False, _ZERO3, hip, normal, 1.0, True, "warm-up", 0, 0, (), 0
+            )
+            self.tick(t, q, qd, fused=lost)  # holding
+            self.tick(t + 10.0, q, qd, fused=lost)  # stopped: the position hold
         finally:
             self.fusion = saved
-            self._held = None
-            self._held_t = -math.inf
+            self.guard.reset()
             self._solved_last = False
             self._last_x = None
             self.last_fused = None
@@ -377,8 +394,8 @@ class HapticLoop:
     def surfaces(self, hip: FloatArray, primary: SurfacePoint | None) -> list[SurfacePoint]:
         """The surfaces the constraints act on this tick: the perceived one (if any), then walls.
 
-        ``primary`` is the fused surface, or the last one held still after the fusion lost it
-        (:attr:`HapticsConfig.hold_lost_surface_s`).
+        ``primary`` is the fused surface, or the last one the guard holds after the fusion
+        lost it (:class:`~hapticloud.core.haptics.unknown.SurfaceGuard`).
         """
         out: list[SurfacePoint] = [] if primary is None else [primary]
         # A wall's own point serves as its centroid: (h - p) . n is the same for every point p of
@@ -406,7 +423,9 @@ class HapticLoop:
         interaction_torque
             ``J^T f`` of the handle force sensor (N m), or ``None`` without a sensor.
         fused
-            A fused surface to use instead of sampling the loop's fusion (e.g. replay).
+            A fused surface to use instead of sampling the loop's fusion (e.g. replay, or the
+            control process's). An invalid one (or none from a loop with a fusion) leaves the
+            space unknown: the guard holds the last surface, then stops (:attr:`guard`).
 
         Returns
         -------
@@ -428,25 +447,38 @@ class HapticLoop:
             robot.nonlinear_effects(),
             self.hip_radius_m + clearance,
         )
+        perceived = fused is not None or self.fusion is not None
         if fused is None and self.fusion is not None:
             fused = self.fusion.sample(t)
         self.last_fused = fused
         fused_ok = fused is not None and fused.valid
-        region = self.fused_region
-        if fused_ok:
-            centroid, normal, velocity = fused.centroid, fused.normal, fused.velocity
-            if type(fused) is not FusedSurface:  # the fusion's own are float arrays already
-                centroid, normal = _float_array(centroid), _float_array(normal)
-                velocity = _float_array(velocity)
-            primary = SurfacePoint(centroid, normal, velocity, region)
-            self._held = SurfacePoint(centroid, normal, _ZERO3, region)
-            self._held_t = t
-        elif self._held is not None and t - self._held_t <= self.config.hold_lost_surface_s:
-            # A surface does not vanish because the cameras lost it (out of the workspace
-            # sphere, occluded): constrain against where it was last seen, still.
-            primary = self._held
-        else:
-            primary = None
+        primary, hold_q, space = None, None, SpaceState.KNOWN
+        unknown_cfg = self.config.unknown
+        stale = fused_ok and fused.age_s > unknown_cfg.fresh_s
+        self._cap = self.approach_limit_mps
+        if perceived:
+            known = None
+            if fused_ok and not stale:
+                centroid, normal, velocity = fused.centroid, fused.normal, fused.velocity
+                if type(fused) is not FusedSurface:  # the fusion's own are float arrays already
+                    centroid, normal = _float_array(centroid), _float_array(normal)
+                    velocity = _float_array(velocity)
+                known = SurfacePoint(centroid, normal, velocity, self.fused_region)
+            why, free = "no fused surface", False
+            if fused is not None and known is None:
+                why = f"newest estimate {fused.age_s * 1e3:.0f} ms old" if stale else fused.reason
+                free = free_proof_holds(
+                    getattr(fused, "free_m", 0.0),
+                    getattr(fused, "free_hip", None),
+                    hip.position,
+                    hip.radius_m,
+                    unknown_cfg,
+                )
+            decision = self.guard.step(t, known, robot.q, why, free)
+            primary, hold_q, space = decision.surface, decision.hold_q, decision.state
+            cap = decision.approach_limit_mps
+            if cap is not None and (self._cap is None or cap < self._cap):
+                self._cap = cap
         surfaces = self.surfaces(hip.position, primary)
         M, h = hip.mass_matrix, hip.nonlinear_effects
         tau_int = None if interaction_torque is None else np.asarray(interaction_torque, float)
@@ -490,7 +522,10 @@ class HapticLoop:
         n_haptic = m
         # The level-5 optimum's accelerations: what the robot does where no constraint binds.
         ctrl_cfg = self.controller.config
-        if not cfg.transparent:
+        transparent = cfg.transparent and hold_q is None
+        if hold_q is not None:
+            qdd5 = hold_acceleration(robot.q, hip.qd, hold_q, cfg.unknown)
+        elif not cfg.transparent:
             qdd5 = -ctrl_cfg.min_acceleration.damping_1_per_s * hip.qd
         elif tau_int is None:
             qdd5 = None  # zero
@@ -506,10 +541,15 @@ class HapticLoop:
         # In a contact the solver is needed tick after tick: while the last tick needed it and
         # haptic rows are still there, skip the shortcut's check (~5-15 µs) and solve directly.
         try_shortcut = cfg.exact_shortcut and not (self._solved_last and n_haptic)
-        out = self._shortcut(hip, qdd5, tau_int, m) if try_shortcut else None
+        out = self._shortcut(hip, qdd5, tau_int, m, transparent) if try_shortcut else None
         if out is None:
             rows = [Inequality(G[:m], hv[:m], "haptic")] if m else []
-            motion = Equality(self._a_tau, h, "transparency") if cfg.transparent else None
+            if hold_q is not None:
+                motion: Equality | None = Equality(self._a_hold, qdd5, "position hold")
+            elif transparent:
+                motion = Equality(self._a_tau, h, "transparency")
+            else:
+                motion = None
             # The controller's step without re-converting what the robot model validated (float
             # arrays of the right shapes, dt checked in __init__); its checks on values stay.
             step = self.controller._step_checked if self._trusted else self._step_public
@@ -554,6 +594,7 @@ class HapticLoop:
             out.step_us,
             (time.perf_counter() - t0) * 1e6,
             out.clamped,
+            space,
         )
 
     def _step_public(self, t0: float, inputs: StepInputs) -> ControlOutput:
@@ -579,6 +620,7 @@ class HapticLoop:
         qdd5: FloatArray | None,
         tau_int: FloatArray | None,
         m: int,
+        transparent: bool,
     ) -> ControlOutput | None:
         """The controller's answer without solving, when it is the level-5 optimum; else None.
 
@@ -597,7 +639,7 @@ class HapticLoop:
         qd = hip.qd
         M, h = hip.mass_matrix, hip.nonlinear_effects
         qdd = np.zeros(self.n_joints) if qdd5 is None else qdd5
-        if self.config.transparent:
+        if transparent:
             tau = h.copy()
         else:
             tau = M.dot(qdd) + h
@@ -720,7 +762,7 @@ class HapticLoop:
             bits |= VELOCITY
             if b_v < bound:
                 bound, which = b_v, VELOCITY
-        cap = self.approach_limit_mps
+        cap = self._cap
         if cap is not None:
             gain_time = vc.kv * dt
             d_dot = hs.d_dot_robot + (hs.d_dot_surface if vc.surface_velocity_feedforward else 0.0)
@@ -825,11 +867,14 @@ def admit(est: SurfaceEstimate, min_quality: float, fuse_fallbacks: bool = False
     """Whether a camera's estimate goes to the fusion.
 
     Valid, of quality >= ``min_quality``, and (unless ``fuse_fallbacks``) not a fallback of the
-    curvature estimator (:func:`is_fallback`). The regression weighs samples by age only, so a
-    bad sample moves the fused surface; keeping it out is the cheaper remedy, and the other
-    camera usually sees what this one does not.
+    curvature estimator (:func:`is_fallback`); or invalid with a proof of free space
+    (``free_m`` > 0), which the fusion keeps apart from its surface window. The regression
+    weighs samples by age only, so a bad sample moves the fused surface; keeping it out is the
+    cheaper remedy, and the other camera usually sees what this one does not.
     """
-    if not est.valid or est.quality < min_quality:
+    if not est.valid:
+        return est.free_m > 0.0  # an empty workspace seen is knowledge too (free space)
+    if est.quality < min_quality:
         return False
     return fuse_fallbacks or not is_fallback(est)
 

@@ -178,15 +178,28 @@ def test_epoch_timestamps_give_the_same_torques(robot: RobotModel) -> None:
     assert outs[0].d_proj_m == pytest.approx(outs[1].d_proj_m, abs=1e-6)
 
 
-def test_a_lost_surface_is_held_still_then_released(robot: RobotModel) -> None:
+def test_a_lost_surface_is_held_grown_then_the_robot_stops(robot: RobotModel) -> None:
+    """Unknown is not free: the lost surface is held (moving on, grown), then the arm stops."""
+    from hapticloud.core.haptics.unknown import SpaceState, UnknownSpaceConfig
+
     q, qd = robot.q_home, np.zeros(6)
-    loop = _loop(robot, [], HapticsConfig(hold_lost_surface_s=0.5), fusion=_fed_fusion(0.0))
+    cfg = HapticsConfig(unknown=UnknownSpaceConfig(stop_after_s=0.5))
+    loop = _loop(robot, [], cfg, fusion=_fed_fusion(0.0))
     live = loop.tick(0.2, q, qd)
-    assert live.fused_valid and live.nearest == 0 and live.rows
+    assert live.fused_valid and live.nearest == 0 and live.rows and live.space == SpaceState.KNOWN
     held = loop.tick(0.6, q, qd)  # the fusion is stale by now (max_age_s 0.15)
     assert not held.fused_valid and held.nearest == 0 and held.rows
-    gone = loop.tick(0.8, q, qd)
-    assert gone.nearest == -1 and gone.rows == 0 and math.isinf(gone.d_proj_m)
+    assert held.space == SpaceState.HOLDING
+    # Moved on with its 0.2 m/s toward the HIP and grown: nearer than the live surface.
+    assert held.d_proj_m < live.d_proj_m - 0.4 * 0.2
+    stopped = loop.tick(0.8, q, qd)
+    assert stopped.space == SpaceState.STOPPED and stopped.nearest == 0 and stopped.rows
+    assert [s.state for s in loop.guard.transitions] == [
+        SpaceState.KNOWN,
+        SpaceState.HOLDING,
+        SpaceState.STOPPED,
+    ]
+    assert "stale" in loop.guard.reason
 
 
 def test_admit_keeps_out_invalid_low_quality_and_fallback_estimates() -> None:

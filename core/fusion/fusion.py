@@ -42,7 +42,9 @@ class FusedSurface:
     False they are the last values held (or placeholders) and ``reason`` says why; a valid result
     has ``reason`` empty or starting with ``"holding"``. ``age_s`` is the time since the newest
     valid estimate (s, ``inf`` before any), ``n_samples`` / ``degree`` (of the centroid) /
-    ``cameras`` describe the fit, ``seq`` counts the results produced.
+    ``cameras`` describe the fit, ``seq`` counts the results produced. ``free_m`` > 0 is a
+    camera's fresh proof (no older than ``max_age_s``) that no surface lies within that distance
+    of ``free_hip`` (a frame that saw its whole workspace empty); 0 without one.
     """
 
     t: float
@@ -59,6 +61,8 @@ class FusedSurface:
     degree: int
     cameras: tuple[str, ...]
     seq: int
+    free_m: float = 0.0
+    free_hip: FloatArray | None = None
 
 
 class SurfaceFusion:
@@ -135,6 +139,7 @@ class SurfaceFusion:
         self._emitted: tuple[tuple[Vec3, ...], tuple[FloatArray, ...]] | None = None
         self._last_fit_id = -1
         self._seq = 0
+        self._free: tuple[float, FloatArray, float] | None = None  # (t, hip, radius m)
         self._point.reset()
         self._normal.reset()
 
@@ -151,6 +156,9 @@ class SurfaceFusion:
         t = est.t
         if not est.valid or not math.isfinite(t):
             self.n_invalid += 1
+            if est.free_m > 0.0 and est.hip is not None and math.isfinite(t):
+                if self._free is None or t >= self._free[0]:
+                    self._free = (t, est.hip, est.free_m)
             return False
         cfg = self._cfg
         if t > self._newest + cfg.max_age_s and self._rows:
@@ -337,6 +345,9 @@ class SurfaceFusion:
             arrays = (rows[0], rows[1], rows[2], rows[3], rows[4])
             self._emitted = (vectors, arrays)
         centroid, normal, velocity, target_centroid, target_normal = arrays
+        free = self._free
+        if free is not None and not t - free[0] <= self._cfg.max_age_s:
+            free = None
         out = FusedSurface(
             t,
             centroid,
@@ -352,6 +363,8 @@ class SurfaceFusion:
             0 if fit is None else fit.degree,
             () if fit is None else fit.cameras,
             self._seq,
+            0.0 if free is None else free[2],
+            None if free is None else free[1],
         )
         self._last = out
         return out

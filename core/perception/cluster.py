@@ -178,8 +178,33 @@ def connected_voxels(ijk: ArrayLike, radius_voxels: float = 1.75) -> tuple[int, 
     return int(n_comp), labels.astype(np.int32, copy=False)
 
 
+#: Largest neighbour radius (voxels) the spacing may ask for: the offsets grow as its cube.
+MAX_ADAPTED_RADIUS_VOXELS = 6.0
+
+
+def adapted_to_spacing(
+    cfg: ClusterConfig, voxel_size_m: float, spacing_m: float
+) -> tuple[float, int]:
+    """Neighbour radius (voxels) and minimum cluster size for points ``spacing_m`` apart.
+
+    A camera that samples more coarsely than the voxel grid (decimation, distance) leaves gaps
+    between occupied voxels: the radius grows with the spacing (the configured one in units of
+    the spacing instead of the voxel), and the minimum size shrinks with the area each point now
+    covers, so a surface stays one cluster of the same extent. Finer sampling changes nothing.
+    """
+    ratio = spacing_m / voxel_size_m if voxel_size_m > 0.0 else 0.0
+    if not ratio > 1.0:
+        return cfg.neighbour_radius_voxels, cfg.min_cluster_points
+    radius = min(MAX_ADAPTED_RADIUS_VOXELS, max(cfg.neighbour_radius_voxels, 1.75 * ratio))
+    min_points = max(3, round(cfg.min_cluster_points / (ratio * ratio)))
+    return radius, min(min_points, cfg.min_cluster_points)
+
+
 def cluster_voxels(
-    voxels: VoxelResult, hip: ArrayLike | None = None, cfg: ClusterConfig | None = None
+    voxels: VoxelResult,
+    hip: ArrayLike | None = None,
+    cfg: ClusterConfig | None = None,
+    spacing_m: float = 0.0,
 ) -> ClusterResult:
     """Split the voxel points into Euclidean clusters; keep the large ones.
 
@@ -191,6 +216,9 @@ def cluster_voxels(
         ``(3,)`` HIP, world frame (m); required for ``keep="nearest_to_hip"``.
     cfg
         Stage parameters (defaults if ``None``).
+    spacing_m
+        The camera's point spacing where the points are (m; 0: unknown): coarser than the voxel
+        grid, it widens the neighbourhood (:func:`adapted_to_spacing`).
 
     Returns
     -------
@@ -205,7 +233,8 @@ def cluster_voxels(
         raise InputError("hip: required when keep = 'nearest_to_hip'")
     pts = voxels.points
     n = int(pts.shape[0])
-    n_comp, raw = connected_voxels(voxels.ijk, cfg.neighbour_radius_voxels)
+    radius, min_points = adapted_to_spacing(cfg, voxels.voxel_size_m, spacing_m)
+    n_comp, raw = connected_voxels(voxels.ijk, radius)
     sizes = np.bincount(raw, minlength=n_comp).astype(np.int64)
     # Renumber by size (stable: ties keep their first-seen order) so label 0 is the largest.
     order = np.argsort(-sizes, kind="stable")
@@ -213,7 +242,7 @@ def cluster_voxels(
     rank[order] = np.arange(n_comp, dtype=np.int32)
     labels = rank[raw]
     sizes = sizes[order]
-    large = np.flatnonzero(sizes >= cfg.min_cluster_points)
+    large = np.flatnonzero(sizes >= min_points)
     if large.size == 0 or n == 0:
         chosen: NDArray[np.intp] = np.empty(0, dtype=np.intp)
     elif cfg.keep == "all_large":
@@ -222,7 +251,7 @@ def cluster_voxels(
         chosen = large[:1]
     else:
         assert h is not None
-        in_large = sizes[labels] >= cfg.min_cluster_points
+        in_large = sizes[labels] >= min_points
         cand = np.flatnonzero(in_large)
         d = pts[cand] - h
         nearest = cand[int(np.argmin(np.einsum("ij,ij->i", d, d)))]

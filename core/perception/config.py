@@ -30,8 +30,33 @@ class PerceptionConfig(StageConfig):
     keep_points: bool = param(
         True, doc="attach the kept and filled points to each estimate (for the app; costs copies)"
     )
+    max_spacing_m: float = param(
+        0.012,
+        lo=0.001,
+        hi=0.1,
+        unit="m",
+        doc="coarser sampling than this (voxel or camera pixels at the HIP): estimate invalid",
+    )
+    max_support_gap_m: float = param(
+        0.02,
+        lo=0.001,
+        hi=0.2,
+        unit="m",
+        doc="closest point farther than this from every point it was fitted to: invalid",
+    )
+    min_seen_fraction: float = param(
+        0.9,
+        lo=0.0,
+        hi=1.0,
+        doc="empty workspace counts as free only if this share of its pixels was seen",
+    )
 
     def check(self) -> None:
+        if self.voxel.voxel_size_m > self.max_spacing_m:
+            raise ConfigError(
+                f"voxel.voxel_size_m = {self.voxel.voxel_size_m}: coarser than max_spacing_m = "
+                f"{self.max_spacing_m}, so no estimate could be trusted"
+            )
         workspace = self.crop.workspace_radius_m
         for name, radius in (
             ("abstraction.r_out_m", self.abstraction.r_out_m),

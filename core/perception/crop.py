@@ -94,6 +94,13 @@ class CropResult:
     region
         ``(row0, row1, col0, col1)`` pixel rectangle examined (depth frames), ``None`` otherwise
         or when the sphere is not in view.
+    seen_fraction
+        Share of the rectangle's pixels whose depth reaches the workspace sphere or lies beyond
+        it (depth frames): the rest are invalid or hidden behind something nearer the camera, so
+        what lies there is unknown. 0 for a plain cloud or a sphere out of view.
+    spacing_m
+        Distance between neighbouring pixels' points at the HIP's depth (m; depth frames, 0
+        for a plain cloud): the finest detail the frame can show there.
     """
 
     points: FloatArray
@@ -101,6 +108,8 @@ class CropResult:
     n_input: int
     n_in_workspace: int
     region: tuple[int, int, int, int] | None = None
+    seen_fraction: float = 0.0
+    spacing_m: float = 0.0
 
     @property
     def n_kept(self) -> int:
@@ -202,6 +211,8 @@ def _finish(
     cfg: CropConfig,
     n_input: int,
     region: tuple[int, int, int, int] | None = None,
+    seen_fraction: float = 0.0,
+    spacing_m: float = 0.0,
 ) -> CropResult:
     """Exact sphere test, then the robot primitives, on the candidates' ``(3, M)`` columns.
 
@@ -228,6 +239,8 @@ def _finish(
         n_input=int(n_input),
         n_in_workspace=int(pts.shape[1]),
         region=region,
+        seen_fraction=seen_fraction,
+        spacing_m=spacing_m,
     )
 
 
@@ -427,6 +440,10 @@ def crop_depth_frame(
     # The depth interval test rejects the wall behind and the invalid pixels (0 and NaN compare
     # False) before any multiplication.
     valid = (depth >= z_lo) & (depth <= z_hi)
+    # Seen: the depth reaches the sphere's near side (or passes it). NaN and 0 are not seen.
+    seen = np.count_nonzero(depth >= z_lo) / max(1, depth.size)
+    k = frame.intrinsics
+    spacing = max(0.0, 0.5 * (z_lo + z_hi)) / max(min(k.fx, k.fy), 1e-9)
     z = depth[valid].astype(np.float64)
     xs, ys = frame.intrinsics.pixel_rays()
     xc = xs[rows, cols][valid] * z
@@ -440,4 +457,6 @@ def crop_depth_frame(
         cand[i] += yc * rot[i, 1]
         cand[i] += z * rot[i, 2]
         cand[i] += trans[i]
-    return _finish(cand, h, prims, cfg, n_pixels, region=(row0, row1, col0, col1))
+    return _finish(
+        cand, h, prims, cfg, n_pixels, (row0, row1, col0, col1), float(seen), float(spacing)
+    )

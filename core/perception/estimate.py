@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -89,6 +90,9 @@ class SurfaceEstimate:
     #: Points of the clusters stage C rejected (``keep_points`` only; world, m).
     rejected: FloatArray | None = None
     seq: int = 0
+    #: An invalid estimate that proves free space: no surface within this distance of ``hip``
+    #: (m; the workspace radius when the frame saw the whole workspace empty), else 0.
+    free_m: float = 0.0
 
     def __post_init__(self) -> None:
         centroid, ok_c = _frozen_vec3(self.centroid)
@@ -104,6 +108,10 @@ class SurfaceEstimate:
             object.__setattr__(self, "valid", False)
             object.__setattr__(self, "reason", self.reason or "non-finite centroid or normal")
         object.__setattr__(self, "t", float(self.t))
+        free = float(self.free_m)
+        object.__setattr__(
+            self, "free_m", free if 0.0 < free < math.inf and not self.valid else 0.0
+        )
         if self.hip is not None:
             object.__setattr__(self, "hip", _frozen_vec3(self.hip)[0])
         for name in ("points", "filled", "rejected"):

@@ -13,7 +13,7 @@ from ..errors import InputError
 from ..geometry.primitives import Primitive
 from ..validation import as_finite_scalar, as_unit_vector3, as_vector3
 from .abstraction import estimate_surface
-from .cluster import cluster_voxels
+from .cluster import adapted_to_spacing, cluster_voxels
 from .config import PerceptionConfig
 from .crop import CropResult, crop_depth_frame, crop_points
 from .estimate import SurfaceEstimate
@@ -150,44 +150,88 @@ class CameraPipeline:
     ) -> SurfaceEstimate:
         cfg = self._config
         self._seq += 1
+        size = cfg.voxel.voxel_size_m
+        spacing = max(size, cropped.spacing_m)
+        base = {"hip": h, "seq": self._seq, "method": cfg.abstraction.method}
+        if spacing > cfg.max_spacing_m:
+            # Too coarse to resolve the surface: nothing this frame shows can be trusted.
+            reason = (
+                f"points {spacing * 1e3:.1f} mm apart at the HIP (voxel or pixel spacing) "
+                f"> max_spacing_m {cfg.max_spacing_m * 1e3:.1f} mm: surface not resolved"
+            )
+            return SurfaceEstimate.invalid(t, self.camera, reason, stage_ms=_ms(timer), **base)
         with timer.stage("voxel"):
             # The grid is anchored on the world lattice (a voxel corner near the HIP), not at the
             # HIP itself: a grid moving with the HIP resamples a still surface every frame and the
             # ICP memory then follows the samples instead of the surface.
-            size = cfg.voxel.voxel_size_m
             anchor = np.floor(h / size) * size
             voxels = voxel_downsample(cropped.points, anchor, cfg.voxel)
         with timer.stage("cluster"):
-            clusters = cluster_voxels(voxels, h, cfg.cluster)
+            clusters = cluster_voxels(voxels, h, cfg.cluster, cropped.spacing_m)
         with timer.stage("rebuild"):
             rebuilt = self._memory.step(clusters.points, h, t)
         with timer.stage("abstract"):
             fit = estimate_surface(rebuilt.points, h, axis, cfg.abstraction)
-        stage_ms = dict(timer.ms)
-        stage_ms["total"] = timer.total_ms
+            gap = _support_gap(fit.centroid, rebuilt.points) if fit.valid else 0.0
         extra = {
+            **base,
             "method": fit.method or cfg.abstraction.method,
             "quality": fit.quality,
-            "hip": h,
             "n_points": int(rebuilt.points.shape[0]),
             "shells": fit.shells,
-            "stage_ms": stage_ms,
-            "seq": self._seq,
+            "stage_ms": _ms(timer),
         }
         if cfg.keep_points:
             extra["points"] = clusters.points
             extra["filled"] = rebuilt.filled
             extra["rejected"] = clusters.rejected
+        if fit.valid and gap > cfg.max_support_gap_m:
+            reason = (
+                f"closest point {gap * 1e3:.1f} mm from the nearest point it was fitted to "
+                f"> max_support_gap_m {cfg.max_support_gap_m * 1e3:.1f} mm"
+            )
+            return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
         if not fit.valid:
             reason = fit.reason
-            if cropped.n_kept == 0:
+            free = 0.0
+            if rebuilt.points.shape[0] == 0 and cropped.region is not None:
+                # Nothing that could be a surface in the workspace: free space, if the frame saw
+                # the workspace (invalid pixels or something nearer the camera hide it).
+                seen = cropped.seen_fraction
+                stray = int(clusters.rejected.shape[0])
+                _, min_cluster = adapted_to_spacing(cfg.cluster, size, cropped.spacing_m)
+                if stray >= min_cluster:
+                    reason = f"{stray} points in clusters too small to trust"
+                elif seen >= cfg.min_seen_fraction:
+                    free = cfg.crop.workspace_radius_m
+                    reason = "workspace seen empty" + (f" ({stray} stray points)" if stray else "")
+                else:
+                    reason = (
+                        f"workspace {seen:.0%} seen "
+                        f"(min_seen_fraction {cfg.min_seen_fraction:.0%}): unknown"
+                    )
+            elif cropped.n_kept == 0:
                 reason = "no points in the workspace sphere"
             elif clusters.points.shape[0] == 0:
                 reason = "no cluster large enough"
-            return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
+            return SurfaceEstimate.invalid(t, self.camera, reason, free_m=free, **extra)
         return SurfaceEstimate(
             t=t, camera=self.camera, centroid=fit.centroid, normal=fit.normal, valid=True, **extra
         )
+
+
+def _ms(timer: StageTimer) -> dict[str, float]:
+    stage_ms = dict(timer.ms)
+    stage_ms["total"] = timer.total_ms
+    return stage_ms
+
+
+def _support_gap(centroid: FloatArray, points: FloatArray) -> float:
+    """Distance (m) from the estimated closest point to the nearest point of the fitted cloud."""
+    if points.shape[0] == 0:
+        return math.inf
+    d = points - centroid
+    return math.sqrt(float(np.min(np.einsum("ij,ij->i", d, d))))
 
 
 def frame_rate_bound_mps(config: PerceptionConfig, frame_period_s: float) -> float:

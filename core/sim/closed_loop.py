@@ -37,6 +37,7 @@ from ..control import ControlStatus
 from ..errors import ConfigError
 from ..fusion import SurfaceFusion
 from ..geometry import rotation_between
+from ..limits import MAX_DURATION_S
 from ..loop import HapticLoop, Wall, admit, build_controller, is_fallback
 from ..perception import CameraPipeline, SurfaceEstimate
 from ..robot import RobotModel
@@ -238,6 +239,7 @@ _SCALAR_FIELDS = (
     "clamped",
     "status",
     "fused_age",
+    "space",
 )
 
 
@@ -275,6 +277,8 @@ class ClosedLoopSim:
         self.dt = 1.0 / cfg.loop.rate_hz
         self.hip_radius_m = cfg.robot.hip_radius_m
         self.rng = np.random.default_rng(cfg.scene.seed)
+        # Its own stream: losing frames must not change the noise of the frames that arrive.
+        self._drops = np.random.default_rng([cfg.scene.seed, 1])
         urdf = cfg.robot.urdf or None
         self.robot = RobotModel.load(urdf)
         plant_model = RobotModel.load(urdf)
@@ -454,6 +458,12 @@ class ClosedLoopSim:
         frame = cam.camera.render(world, t, occluders=capsules)
         return cam.pipeline.process_depth(frame, hip, exclude=capsules)
 
+    def _lost(self, spec: CameraSpec, t: float) -> bool:
+        """A frame that never arrives: the camera stopped, or the link dropped it (seeded)."""
+        if 0.0 <= spec.stop_s <= t:
+            return True
+        return spec.drop_fraction > 0.0 and self._drops.random() < spec.drop_fraction
+
     # ----- the run --------------------------------------------------------------------------------
     def run(
         self,
@@ -465,6 +475,8 @@ class ClosedLoopSim:
         duration = cfg.scene.duration_s if duration_s is None else float(duration_s)
         if not duration > 0.0 or not math.isfinite(duration):
             raise ConfigError(f"duration = {duration}: must be a positive number of seconds")
+        if duration > MAX_DURATION_S:
+            raise ConfigError(f"duration = {duration:g}: must be at most {MAX_DURATION_S:g} s")
         n_ticks = round(duration / self.dt)
         arrays: dict[str, FloatArray] = {k: np.zeros((n_ticks, 3)) for k in _VEC_FIELDS}
         arrays.update({k: np.zeros(n_ticks) for k in _SCALAR_FIELDS})
@@ -486,8 +498,10 @@ class ClosedLoopSim:
             t0 = time.perf_counter()
             for cam in self.cameras:
                 while cam.next_time() <= t + 1e-12:
-                    est = self._capture(cam, t, state.q, state.hip)
                     cam.frames += 1
+                    if self._lost(cam.spec, t):
+                        continue
+                    est = self._capture(cam, t, state.q, state.hip)
                     admitted = admit(est, cam.spec.min_quality, cam.spec.fuse_fallbacks)
                     if admitted:
                         pending.append((t + cam.spec.latency_s, est))
@@ -565,6 +579,7 @@ class ClosedLoopSim:
             a["tick_us"][k] = res.tick_us
             a["clamped"][k] = res.clamped
             a["status"][k] = STATUS_CODES[res.status]
+            a["space"][k] = res.space
             if fused is not None:
                 a["fused_centroid"][k] = fused.centroid
                 a["fused_normal"][k] = fused.normal
@@ -594,6 +609,7 @@ class ClosedLoopSim:
             "patient": patient is not None,
             "force_sensor": bool(force_sensor and patient is not None),
             "n_joints": n_joints,
+            "space_transitions": self.loop.guard.transitions if self.fusion is not None else (),
         }
         if patient is not None:
             info["intent_end_s"] = patient.intent.end_s

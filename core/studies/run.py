@@ -44,6 +44,7 @@ from ..loop import FORCE, POSITIONAL, VELOCITY
 from ..scene import Scene, load_scene
 from ..sim.closed_loop import STATUS_CODES, ClosedLoopSim, RunRecord
 from .stats import json_float, summary
+from .verdict import Verdict, judge, space_summary
 
 FloatArray = NDArray[np.float64]
 
@@ -286,6 +287,12 @@ def contact_stats(rec: RunRecord) -> dict[str, Any]:
     return {"threshold_m": CONTACT_M, "episodes": out, "contact_jitter_mm": jitter}
 
 
+def run_verdict(rec: RunRecord) -> Verdict:
+    """SAFE or UNSAFE from the run's true margins (:mod:`.verdict`)."""
+    a = rec.arrays
+    return judge(a["t"], a["margin"], space=a["space"], fused_age_s=a["fused_age"])
+
+
 def report(rec: RunRecord) -> dict[str, Any]:
     """The JSON report of one run (see the module docstring)."""
     a = rec.arrays
@@ -320,6 +327,18 @@ def report(rec: RunRecord) -> dict[str, Any]:
         "wall_time_s": json_float(rec.wall_time_s),
         "wall_time_split_s": {k: json_float(v) for k, v in rec.timing_s.items()},
     }
+    verdict = run_verdict(rec)
+    out["verdict"] = verdict.label
+    out["truth"] = {
+        "min_margin_m": min_margin,
+        "t_min_margin_s": out["t_min_margin_s"],
+        **verdict.to_json(),
+    }
+    out["space"] = (
+        space_summary(a["t"], a["space"], rec.info.get("space_transitions", ()), rec.dt)
+        if rec.info["cameras"]
+        else None
+    )
     if rec.scene.has_surface:
         out["surface"] = {
             "speed_mps": cfg.surface.speed_mps,
@@ -349,6 +368,8 @@ def sweep_report(key: str, runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                 "min_center_margin_m": rep["min_center_margin_m"],
                 "max_penetration_m": rep["max_penetration_m"],
                 "wall_time_s": rep["wall_time_s"],
+                "verdict": rep["verdict"],
+                "verdict_line": rep["truth"]["line"],
             }
         )
     return {"key": key, "rows": rows, "runs": reports}
@@ -392,6 +413,15 @@ def summary_lines(rep: Mapping[str, Any]) -> list[str]:
             f"{mm(ep['min_margin_m'])}, rebound {ep['rebound_m'] * 1e3:.1f} mm at "
             f"{ep['rebound_speed_mps']:.2f} m/s"
         )
+    space = rep.get("space")
+    if space:
+        share = space["fraction"]
+        lines.append(
+            f"space: known {share['known']:.0%}, holding {share['holding']:.0%}, stopped "
+            f"{share['stopped']:.0%} of the run "
+            f"(longest unknown {space['longest_unknown_s']:.2f} s)"
+        )
+    lines.append(rep["truth"]["line"])
     return lines
 
 

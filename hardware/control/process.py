@@ -11,7 +11,7 @@ frozen, memory locked). One tick::
     fb = link.poll_feedback()                   # answers to the previous SYNC
     commands, estimates (non-blocking polls)    # enable, e-stop, faults; camera estimates -> fusion
     reaction = watchdogs.check(...)             # cameras, estimate age, feedback, heartbeat, bus
-    fused = fusion.sample(t), or the held surface with the approach capped at v_min
+    fused = fusion.sample(t), marked invalid while a watchdog holds (approach capped at v_min)
     res = loop.tick(t, fb.position, fb.velocity, fused=fused)
     link.send_cycle(tau by session state and reaction, controlwords)  # command + SYNC
     robot state -> shared memory; every 8th tick a snapshot -> pipe (only if writable)
@@ -31,12 +31,13 @@ snapshot that does not fit is dropped and counted. The robot's state (HIP, q) is
 every tick to a :class:`~.shared_state.RobotStateBlock` under a sequence lock, for perception to
 crop around.
 
-Reactions (:mod:`hapticloud.hardware.session.watchdogs`): HOLD_SURFACE keeps the last fused
-surface, still, and caps the approach speed at ``hold_v_min_m_s``; DAMPING adds joint damping to
-that (the haptic tick's torque minus ``damping_nms`` times the joint velocities); TORQUE_OFF (and
-every state but ENABLED) sends zero torque; the link itself also blocks torque to any drive not in
-OPERATION ENABLED and clamps to the drive limits. Every tick is recorded (times, torques sent,
-state, reaction level, distance, approach speed and its cap) and returned by
+Reactions (:mod:`hapticloud.hardware.session.watchdogs`): HOLD_SURFACE makes the space unknown for
+the tick's guard (:mod:`hapticloud.core.haptics.unknown`: the last surface held, moving and grown,
+then a stop and position hold) and caps the approach speed at ``hold_v_min_m_s``; DAMPING adds
+joint damping to that (the haptic tick's torque minus ``damping_nms`` times the joint velocities);
+TORQUE_OFF (and every state but ENABLED) sends zero torque; the link itself also blocks torque to
+any drive not in OPERATION ENABLED and clamps to the drive limits. Every tick is recorded (times,
+torques sent, state, reaction level, distance, approach speed and its cap) and returned by
 :meth:`ControlProcess.stop`, so tests assert reactions from the log, not from sleeping. SIGINT in
 the child is an emergency stop.
 """
@@ -153,6 +154,7 @@ _LOG_FIELDS = (
     "body_us",
     "ahead_us",
     "ahead_frames",
+    "space",
 )
 _MAX_EVENTS_PER_SNAPSHOT = 8
 #: Ticks in a row a snapshot or a refit may wait for time left in the period (:mod:`.slack`).
@@ -193,13 +195,15 @@ def estimate_to_wire(est: Any) -> tuple[Any, ...]:
         str(est.reason),
         str(est.method),
         int(est.seq),
+        float(est.free_m),
+        None if est.hip is None else tuple(float(x) for x in est.hip),
     )
 
 
 def estimate_from_wire(wire: tuple[Any, ...]) -> Any:
     from hapticloud.core.perception import SurfaceEstimate
 
-    t, camera, centroid, normal, valid, quality, reason, method, seq = wire
+    t, camera, centroid, normal, valid, quality, reason, method, seq, free_m, hip = wire
     return SurfaceEstimate(
         t,
         camera,
@@ -210,6 +214,8 @@ def estimate_from_wire(wire: tuple[Any, ...]) -> Any:
         method=method,
         quality=quality,
         seq=seq,
+        free_m=free_m,
+        hip=None if hip is None else np.array(hip),
     )
 
 
@@ -359,7 +365,6 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 },
             )
         )
-        held = None  # the last valid fused surface, still (velocity zero)
         est_time = -math.inf  # capture time of the newest estimate received
         fed_estimates = False
         camera_last: dict[str, float] = {}
@@ -535,18 +540,17 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                     machine.drives_ready(t, "drives ready again")
             reaction = wd.reaction
             level = reaction.level
-            # Hold the last surface, still, with the approach speed capped at v_min.
+            fused = fusion.sample(t) if fusion is not None else None
             if level >= L.HOLD_SURFACE:
+                # The watchdog distrusts the cameras: the space is unknown for the tick's guard
+                # (the last surface held and grown, then a stop), approach capped at v_min.
                 hloop.approach_limit_mps = wd.config.hold_v_min_m_s
-                fused = held
+                if fused is not None:
+                    fused = dataclasses.replace(
+                        fused, valid=False, reason=f"watchdog: {reaction.reason}", free_m=0.0
+                    )
             else:
                 hloop.approach_limit_mps = None
-                fused = fusion.sample(t) if fusion is not None else None
-                if fused is not None and fused.valid:
-                    held = fused
-            if held is not None and level >= L.HOLD_SURFACE and held.velocity.any():
-                held = dataclasses.replace(held, velocity=_ZERO3)
-                fused = held
             p1 = time.perf_counter()
             res = hloop.tick(t, fb.position_rad, fb.velocity_rad_s, fused=fused)
             p2 = time.perf_counter()
@@ -614,6 +618,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 log["send_us"][i] = (p3 - p2) * 1e6
                 log["ahead_us"][i] = ahead[0]
                 log["ahead_frames"][i] = ahead[1]
+                log["space"][i] = res.space
                 log_tau[i] = sent
                 log_hip[i] = hip_now
             if i % snap_every == 0:
@@ -721,6 +726,9 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                     (tr.t, tr.from_state.value, tr.to_state.value, tr.reason) for tr in machine.log
                 ],
                 "reactions": [(r.tick, r.t, r.level.name, r.source, r.reason) for r in wd.log],
+                "space_transitions": [
+                    (tr.t, tr.state.label, tr.reason) for tr in hloop.guard.transitions
+                ],
                 "commands": events,
                 "snapshots_sent": seq,
                 "snapshots_dropped": dropped,

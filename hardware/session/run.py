@@ -44,7 +44,9 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+from hapticloud.core.haptics.unknown import SpaceState, SpaceTransition
 from hapticloud.core.studies.stats import json_float, summary
+from hapticloud.core.studies.verdict import Verdict, judge, space_summary
 
 __all__ = ["HARDWARE_MODE", "run_session", "summary_lines"]
 
@@ -237,7 +239,7 @@ class _Perception:
             self._conn.send(("stop",))
             out = self._recv(timeout)[1]
         except (OSError, EOFError, RuntimeError, TimeoutError) as err:
-            self.error = self.error or str(err)
+            self.error = self.error or str(err) or type(err).__name__
         self._proc.join(timeout)
         if self._proc.is_alive():
             self._proc.terminate()
@@ -379,6 +381,7 @@ def run_session(
         The control process failed.
     """
     from hapticloud.core.errors import ConfigError
+    from hapticloud.core.limits import MAX_DURATION_S
     from hapticloud.core.scene import load_scene
     from hapticloud.core.sim.closed_loop import ClosedLoopSim
 
@@ -395,6 +398,8 @@ def run_session(
     duration = cfg.scene.duration_s if duration_s is None else float(duration_s)
     if not (math.isfinite(duration) and duration > 0.0):
         raise ConfigError(f"duration = {duration}: must be a positive number of seconds")
+    if duration > MAX_DURATION_S:
+        raise ConfigError(f"duration = {duration:g}: must be at most {MAX_DURATION_S:g} s")
     if abs(cfg.loop.rate_hz - 1.0 / PERIOD_S) > 1e-6:
         raise ConfigError(
             f"loop.rate_hz = {cfg.loop.rate_hz:g}: the control process runs at {1 / PERIOD_S:g} Hz"
@@ -535,6 +540,8 @@ def _report(
             "t_s": [round(float(x), 4) for x in ts[::step]],
             "margin_m": [round(float(x), 6) for x in margins[::step]],
         }
+    verdict, space = _verdict(log, enabled, t[on] if margins.size else t[:0], ts, margins, result)
+    truth.update(verdict.to_json())
     fused_valid = [bool(s.fused_valid) for s in snaps if s.state == "enabled"]
     est_age = np.array([s.estimate_age_s for s in snaps if s.state == "enabled"])
     est_out = dict(estimates)
@@ -604,7 +611,29 @@ def _report(
         },
         "estimates": est_out,
         "truth": truth,
+        "verdict": verdict.label,
+        "space": space,
     }
+
+
+def _verdict(
+    log: Mapping[str, Any],
+    enabled: Any,
+    t_sample: Any,
+    ts: Any,
+    margins: Any,
+    result: Mapping[str, Any],
+) -> tuple[Verdict, dict[str, Any]]:
+    """SAFE/UNSAFE from the sampled true margins, explained by the tick's space state then."""
+    lt, code = log["t"], log["space"]
+    space_at = code[np.clip(np.searchsorted(lt, t_sample, side="right") - 1, 0, None)]
+    verdict = judge(ts, margins, space=space_at if lt.size else None)
+    transitions = [
+        SpaceTransition(float(t), SpaceState[label.upper()], why)
+        for t, label, why in result.get("space_transitions", ())
+    ]
+    dt = float(np.median(np.diff(lt))) if lt.size > 1 else 0.00125
+    return verdict, space_summary(lt[enabled], code[enabled], transitions, dt)
 
 
 def summary_lines(rep: Mapping[str, Any]) -> list[str]:
@@ -630,9 +659,15 @@ def summary_lines(rep: Mapping[str, Any]) -> list[str]:
         f"(max penetration {mm(tr.get('max_penetration_m'))}), "
         f"min d_proj {mm(rep['haptics']['min_d_proj_m'])}",
     ]
+    share, longest = rep["space"]["fraction"], rep["space"]["longest_unknown_s"]
+    lines.append(
+        f"space while enabled: known {share['known']:.0%}, holding {share['holding']:.0%}, "
+        f"stopped {share['stopped']:.0%} (longest unknown {longest:.2f} s)"
+    )
     resets = rep["session"].get("startup_faults_reset")
     if resets:
         lines.append(f"reset before enable: {'; '.join(resets)}")
     if rep.get("error"):
         lines.append(f"control process error: {rep['error']}")
+    lines.append(rep["truth"]["line"])
     return lines
