@@ -7,16 +7,19 @@ reason on stderr. Subcommands live in :mod:`hapticloud.app.commands`, one module
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from hapticloud.core.threads import set_environment
 
 # Before numpy is imported anywhere: BLAS pools spinning on 2 cores cost several times the work.
 set_environment(1)
 
-from hapticloud.core.errors import HapticloudError  # noqa: E402
+from hapticloud.app.commands import reason  # noqa: E402
+from hapticloud.core.errors import ConfigError, HapticloudError  # noqa: E402
 
 EXIT_BAD_INPUT = 2
 # Registration order is the order --help lists them.
@@ -36,22 +39,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def route(argv: Sequence[str]) -> list[str]:
+    """The arguments to parse: ``hapticloud [app] [SCENE] [options]``.
+
+    Anything that is not a command (or a request for the top-level help) goes to the default
+    command, except a first word that is neither a file nor a shipped scene but close to a
+    command's name: a mistyped command (:class:`ConfigError` saying which it resembles).
+    """
+    argv = list(argv)
+    if argv and argv[0] in (*COMMANDS, "-h", "--help"):
+        return argv
+    if argv and not argv[0].startswith("-"):
+        _refuse_mistyped_command(argv[0])
+    return DEFAULT_COMMAND + argv
+
+
+def _refuse_mistyped_command(word: str) -> None:
+    close = difflib.get_close_matches(word, COMMANDS, n=1)
+    if not close or Path(word).exists():
+        return
+    from hapticloud.core.scene import resolve_scene
+
+    if not resolve_scene(word).exists():
+        raise ConfigError(f"unknown command {word!r} (did you mean {close[0]!r}?)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    argv = list(sys.argv[1:] if argv is None else argv)
-    # `hapticloud [app] [SCENE] [options]`: anything that is not a command (or a request for the
-    # top-level help) goes to the default command.
-    if not argv or (argv[0] not in COMMANDS and argv[0] not in ("-h", "--help")):
-        argv = DEFAULT_COMMAND + argv
-    args = parser.parse_args(argv)
-    handler: Callable[[argparse.Namespace], int] | None = getattr(args, "handler", None)
-    if handler is None:
-        parser.print_help()
-        return EXIT_BAD_INPUT
     try:
+        args = parser.parse_args(route(sys.argv[1:] if argv is None else argv))
+        handler: Callable[[argparse.Namespace], int] | None = getattr(args, "handler", None)
+        if handler is None:
+            parser.print_help()
+            return EXIT_BAD_INPUT
         return handler(args)
     except HapticloudError as err:
-        print(f"hapticloud: error: {err}", file=sys.stderr)
+        print(f"hapticloud: error: {reason(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         return 130

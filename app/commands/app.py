@@ -11,7 +11,7 @@ from pathlib import Path
 
 from hapticloud.core.errors import ConfigError
 
-from . import add_set_option, overrides, positive_float
+from . import add_set_option, check_outputs, overrides, positive_float
 
 DEFAULT_SIZE = (1440, 900)
 
@@ -99,6 +99,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from hapticloud.app.live_source import LiveConfig, SimSettings, scene_spec
 
+    check_outputs(files={"--screenshot": args.screenshot})
     # A one-line error for an unknown scene, a bad file or one the app cannot show, before any
     # process starts (the build is cached: the window reuses it).
     scene_spec(args.scene).build(decimation=args.decimation)
@@ -119,8 +120,6 @@ def run(args: argparse.Namespace) -> int:
     if args.screenshot and exit_after is None:
         exit_after = 3.0
     shot = Path(args.screenshot) if args.screenshot else None
-    if shot is not None and not shot.parent.exists():
-        raise ConfigError(f"--screenshot {shot}: folder {shot.parent} does not exist")
 
     from hapticloud.app.screenshot import has_display, virtual_display
 

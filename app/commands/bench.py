@@ -6,8 +6,18 @@ import argparse
 import sys
 
 from hapticloud.core.errors import ConfigError
+from hapticloud.core.limits import BENCH_FRAMES_MAX, BENCH_FRAMES_MIN, MAX_DURATION_S
 
-from . import add_set_option, overrides, positive_float, positive_int
+from . import (
+    add_set_option,
+    check_duration,
+    check_outputs,
+    overrides,
+    positive_float,
+    positive_int,
+)
+
+FRAMES_RANGE = f"{BENCH_FRAMES_MIN} to {BENCH_FRAMES_MAX}"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,7 +37,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Accuracy (centroid, normal, d_proj) against the simulator's ground truth and "
         "latency per stage, side by side with the straightforward Open3D chain.",
     )
-    perception.add_argument("--frames", type=positive_int, default=60, help="frames per scene (60)")
+    perception.add_argument(
+        "--frames",
+        type=positive_int,
+        default=60,
+        metavar="N",
+        help=f"frames per scene, {FRAMES_RANGE} (60)",
+    )
     perception.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     perception.add_argument(
         "--knobs", action="store_true", help="also sweep the main knobs (speed/accuracy trade)"
@@ -42,7 +58,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "oracles. A miss is a tick longer than the 1250 us period.",
     )
     loop.add_argument(
-        "--duration", type=positive_float, default=15.0, metavar="S", help="simulated s (15)"
+        "--duration",
+        type=positive_float,
+        default=15.0,
+        metavar="S",
+        help=f"simulated s (wall-clock with --bus), at most {MAX_DURATION_S:g} (15)",
     )
     loop.add_argument("--scene", default="impacts", help="scene file or shipped name (impacts)")
     loop.add_argument("--json", action="store_true", help="print one JSON object")
@@ -98,10 +118,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_perception(args: argparse.Namespace) -> int:
+    if not BENCH_FRAMES_MIN <= args.frames <= BENCH_FRAMES_MAX:
+        raise ConfigError(f"--frames = {args.frames}: must be {FRAMES_RANGE} (frames per scene)")
+    check_outputs(files={"--json": args.json})
     from hapticloud.core.studies import perception as study
 
-    if args.frames < study.SEGMENT_FRAMES:
-        raise ConfigError(f"--frames = {args.frames}: must be at least {study.SEGMENT_FRAMES}")
     return study.main(
         frames=args.frames,
         overrides=overrides(args.set),
@@ -112,6 +133,7 @@ def run_perception(args: argparse.Namespace) -> int:
 
 
 def run_loop(args: argparse.Namespace) -> int:
+    check_duration(args.duration)
     if args.bus:
         from hapticloud.hardware.control import bench as bus_bench
 

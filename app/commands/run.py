@@ -8,7 +8,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from . import add_set_option, overrides, positive_float
+from hapticloud.core.limits import MAX_DURATION_S
+
+from . import (
+    add_set_option,
+    check_duration,
+    check_outputs,
+    overrides,
+    positive_float,
+    reason,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--duration",
         type=positive_float,
         metavar="S",
-        help="simulated seconds (default: the scene's duration_s)",
+        help=f"simulated seconds, at most {MAX_DURATION_S:g} (default: the scene's duration_s)",
     )
     parser.add_argument("--report", metavar="PATH", help="write the JSON report here")
     parser.add_argument("--plot", metavar="DIR", help="write the figures (PNG) into this folder")
@@ -38,8 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--compare-paper",
         action="store_true",
-        help="with --sweep: also run each value with the paper's formulation "
-        "(no surface-velocity feed-forward)",
+        help="only with --sweep (refused alone): also run each value with the paper's "
+        "formulation (no surface-velocity feed-forward); for one run, sweep one value, e.g. "
+        "--sweep surface.speed_mps=1.0",
     )
     parser.add_argument(
         "--hardware",
@@ -65,12 +75,15 @@ def run(args: argparse.Namespace) -> int:
     from hapticloud.core.studies import run as study
 
     say = (lambda *_: None) if args.quiet else (lambda line: print(line, flush=True))
-    scene = load_scene(args.scene, overrides(args.set))
+    # Every argument is checked before the run: a long run is never thrown away at its end.
+    check_duration(args.duration)
     if args.compare_paper and not args.sweep:
-        raise ConfigError("--compare-paper: needs --sweep")
+        raise ConfigError("--compare-paper: needs --sweep (for one run: --sweep KEY=VALUE)")
+    if args.hardware and (args.sweep or args.plot):
+        raise ConfigError("--hardware: not with --sweep or --plot")
+    check_outputs(files={"--report": args.report}, folders={"--plot": args.plot})
+    scene = load_scene(args.scene, overrides(args.set))
     if args.hardware:
-        if args.sweep or args.plot:
-            raise ConfigError("--hardware: not with --sweep or --plot")
         return _run_hardware(args, scene, say)
     try:
         if args.sweep:
@@ -134,7 +147,7 @@ def _run_hardware(args: argparse.Namespace, scene: Any, say: Any) -> int:
     except InfeasibleSceneError as err:
         return _infeasible(args, scene, err)
     except (RuntimeError, TimeoutError) as err:
-        print(f"hapticloud: error: {str(err).splitlines()[0]}", file=sys.stderr)
+        print(f"hapticloud: error: {reason(err)}", file=sys.stderr)
         return 1
     for line in summary_lines(rep):
         say(line)

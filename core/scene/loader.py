@@ -10,6 +10,9 @@ by their ``name`` or their index: ``cameras.front.decimation=1``, ``walls.0.leve
 ``patient.waypoints.2.speed_mps=0.8``. A table that declares something (``[surface]``,
 ``[patient]``, a list entry) must exist in the file to be overridden: an override never adds a
 camera, a body or a moving surface the scene did not declare.
+
+A scene declares at least what it is (a ``[scene]`` table) or something the HIP can touch (a body,
+a wall, the moving surface): an empty file is refused (``scene.toml: scene is empty: ...``).
 """
 
 from __future__ import annotations
@@ -31,6 +34,9 @@ from .schema import (
     WallSpec,
     WaypointSpec,
 )
+
+#: The least a scene declares: what it is, or something the HIP can touch.
+_MINIMUM = "declare a [scene] table or something to touch ([[bodies]], [[walls]] or [surface])"
 
 #: Top-level arrays of tables and the class of each entry.
 LIST_TABLES: dict[str, type[StageConfig]] = {
@@ -181,6 +187,9 @@ def parse_scene(data: Mapping[str, Any], path: str = "<scene>") -> Scene:
         raise ConfigError("patient.waypoints: need a [patient] table")
     if cameras and not (bodies or "surface" in declared):
         raise ConfigError("cameras: the scene has cameras but nothing to see (no [[bodies]])")
+    if not ("scene" in data or bodies or walls or "surface" in declared):
+        what = "no [scene] table and nothing to touch" if data else "scene is empty"
+        raise ConfigError(f"{what}: {_MINIMUM}")
     for i, wp in enumerate(waypoints):
         if i > 0 and wp.t_s < 0.0 and wp.speed_mps == 0.0:
             raise ConfigError(f"patient.waypoints[{i}]: give t_s or speed_mps")

@@ -31,6 +31,7 @@ from ..control import ControllerConfig
 from ..errors import ConfigError
 from ..fusion import FusionConfig
 from ..haptics import body_region
+from ..limits import MAX_DURATION_S
 from ..loop import HapticsConfig
 from ..perception import PerceptionConfig
 from ..sim.bodies import BODY_PARTS
@@ -69,7 +70,9 @@ class SceneMeta(StageConfig):
 
     name: str = param("scene", doc="short name (reports, figure titles)")
     description: str = param("", doc="one line saying what the scene shows")
-    duration_s: float = param(5.0, lo=0.0, hi=600.0, lo_open=True, unit="s", doc="run length")
+    duration_s: float = param(
+        5.0, lo=0.0, hi=MAX_DURATION_S, lo_open=True, unit="s", doc="run length"
+    )
     seed: int = param(0, lo=0, hi=2**31 - 1, doc="seed of every random source of the run")
 
 

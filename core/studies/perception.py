@@ -30,13 +30,14 @@ from typing import Any, TextIO
 import numpy as np
 
 from ..errors import ConfigError
+from ..limits import BENCH_FRAMES_MAX, BENCH_FRAMES_MIN
 from ..perception import CameraPipeline, PerceptionConfig
 from ..sim import BenchScene, perception_bench_scenes
 from .naive_chain import NaiveOpen3DChain
 
 R_HIP_M = 0.04
 FRAME_RATE_HZ = 30.0
-SEGMENT_FRAMES = 15
+SEGMENT_FRAMES = BENCH_FRAMES_MIN  # frames of one approach/leave segment: the least a study runs
 NEAR_M = 0.08  # the valid-rate target counts frames with the surface this close to the HIP
 
 METHODS: dict[str, dict[str, Any]] = {
@@ -385,8 +386,10 @@ def main(
     out: TextIO | None = None,
 ) -> int:
     """Run the study, print the tables, optionally write JSON. Returns the exit code."""
-    if frames < SEGMENT_FRAMES:
-        raise ConfigError(f"--frames = {frames}: must be at least {SEGMENT_FRAMES}")
+    if not BENCH_FRAMES_MIN <= frames <= BENCH_FRAMES_MAX:
+        raise ConfigError(
+            f"--frames = {frames}: must be {BENCH_FRAMES_MIN} to {BENCH_FRAMES_MAX} (per scene)"
+        )
     from ..threads import settle_numerics
 
     settle_numerics(1)
