@@ -7,7 +7,9 @@ import time
 from collections.abc import Mapping
 from typing import Any, TextIO
 
+import numpy as np
 from hapticloud.core.studies.demo import demo_frames
+from hapticloud.core.studies.verdict import judge_estimates
 
 HEADER = (
     "    t s  camera   valid  body            d_proj mm (true)   centroid err mm  "
@@ -38,6 +40,7 @@ def run_text_demo(
     print(HEADER, file=out, flush=True)
     start = time.monotonic()
     errors = []
+    judged: list[tuple[float, float, float]] = []
     for frame in demo_frames(duration_s, overrides):
         if realtime:
             delay = start + frame.t - time.monotonic()
@@ -46,8 +49,29 @@ def run_text_demo(
         print(format_frame(frame), file=out, flush=True)
         if not math.isnan(frame.centroid_error_mm):
             errors.append(frame.centroid_error_mm)
+        if frame.estimate.valid:
+            judged.append((frame.t, frame.d_proj_m, frame.d_proj_true_m))
     if errors:
         errors.sort()
         median = errors[len(errors) // 2]
         print(f"{len(errors)} valid estimates, median centroid error {median:.2f} mm", file=out)
+    t, d_est, d_true = (
+        (np.array(c, dtype=np.float64) for c in zip(*judged, strict=True))
+        if (judged)
+        else (np.zeros(0),) * 3
+    )
+    # No robot moves in this demo, so there is no margin to judge, only how far the estimates
+    # erred on the unsafe side (the surface reported farther than it is): said, exit 0.
+    check = judge_estimates(t, d_est, d_true)
+    if check.min_margin_m is None:
+        print("estimates: none valid to check against the truth", file=out, flush=True)
+        return 0
+    optimistic = int(np.count_nonzero(d_est - d_true > check.allowed_penetration_m))
+    print(
+        f"estimates: at worst {-check.min_margin_m * 1e3:+.1f} mm farther than the true surface "
+        f"(t={check.t_min_s:.2f} s); {optimistic} of {len(judged)} valid estimates more than "
+        f"{check.allowed_penetration_m * 1e3:.0f} mm on that side",
+        file=out,
+        flush=True,
+    )
     return 0

@@ -3,8 +3,6 @@ a lost surface, estimate gating, and a short closed-loop push against a wall."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 from hapticloud.core.control import ControlStatus

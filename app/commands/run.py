@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
                 say(
                     f"{key} = {row['value']} ({row['formulation']}): min margin "
                     f"{'n/a' if m is None else f'{m * 1e3:+.1f} mm'}, "
-                    f"wall time {row['wall_time_s']:.1f} s"
+                    f"wall time {row['wall_time_s']:.1f} s, {row['verdict']}"
                 )
             if args.report:
                 _write_json(args.report, rep)
@@ -113,7 +113,11 @@ def run(args: argparse.Namespace) -> int:
                 say(f"wrote {plots.fig12_speed_sweep(key, runs, rep['rows'], out / 'fig12.png')}")
                 first = runs[0]["record"]
                 _plot_single(first, out, say, suffix=f"_{key.split('.')[-1]}_{runs[0]['value']}")
-            return 0
+            # The paper's formulation is there to be compared, not run: only ours decides.
+            ours = [r for r in rep["rows"] if r["formulation"] == "ours"]
+            return _verdict_exit(
+                args, [r["verdict_line"] for r in ours], [r["verdict"] for r in ours]
+            )
         record = study.run_scene(scene, None, args.duration)
     except InfeasibleSceneError as err:
         return _infeasible(args, scene, err)
@@ -125,7 +129,20 @@ def run(args: argparse.Namespace) -> int:
         say(f"wrote {args.report}")
     if args.plot:
         _plot_single(record, Path(args.plot), say)
-    return 0
+    return _verdict_exit(args, [rep["truth"]["line"]], [rep["verdict"]])
+
+
+def _verdict_exit(args: argparse.Namespace, lines: list[str], verdicts: list[str]) -> int:
+    """Exit code 3 (documented) when a run was UNSAFE; its line goes to stderr under --quiet."""
+    from hapticloud.core.studies.verdict import UNSAFE_EXIT_CODE
+
+    unsafe = [line for line, v in zip(lines, verdicts, strict=True) if v == "UNSAFE"]
+    if not unsafe:
+        return 0
+    if args.quiet:
+        for line in unsafe:
+            print(line, file=sys.stderr)
+    return UNSAFE_EXIT_CODE
 
 
 def _infeasible(args: argparse.Namespace, scene: Any, err: Exception) -> int:
@@ -154,7 +171,7 @@ def _run_hardware(args: argparse.Namespace, scene: Any, say: Any) -> int:
     if args.report:
         _write_json(args.report, rep)
         say(f"wrote {args.report}")
-    return 0
+    return _verdict_exit(args, [rep["truth"]["line"]], [rep["verdict"]])
 
 
 def _plot_single(record: Any, out: Path, say: Any, suffix: str = "") -> None:

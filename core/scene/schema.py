@@ -145,9 +145,19 @@ class CameraSpec(StageConfig):
     latency_s: float = param(
         0.015,
         lo=0.0,
-        hi=0.5,
+        hi=2.0,
         unit="s",
         doc="exposure to estimate available (transfer + perception)",
+    )
+    drop_fraction: float = param(
+        0.0, lo=0.0, hi=0.99, doc="share of frames lost on the way (seeded; a degraded link)"
+    )
+    stop_s: float = param(
+        -1.0,
+        lo=-1.0,
+        hi=3600.0,
+        unit="s",
+        doc="the camera sends nothing from this time on (-1: never)",
     )
     min_quality: float = param(
         0.5, lo=0.0, hi=1.0, doc="estimates below this quality are not fused"

@@ -447,7 +447,11 @@ class ClosedLoopSim:
             d, point, normal, idx = self.world.closest(hip, t)
             reach = spec.oracle_range_m or self.scene.config.perception.crop.workspace_radius_m
             if idx < 0 or d > reach:
-                return SurfaceEstimate.invalid(t, spec.name, "oracle: nothing in range")
+                # The oracle knows: nothing within its reach is a proof of free space.
+                free = d if idx >= 0 else reach
+                return SurfaceEstimate.invalid(
+                    t, spec.name, "oracle: nothing in range", hip=hip, free_m=min(free, reach)
+                )
             c = point + self.rng.normal(0.0, spec.oracle_centroid_noise_m, 3)
             tilt = self.rng.normal(0.0, math.radians(spec.oracle_normal_noise_deg), 3)
             n = normal + np.cross(tilt, normal)

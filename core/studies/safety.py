@@ -7,16 +7,15 @@ the tick spent without knowing the space (holding the last surface or stopped) a
 The target is every cell SAFE (never more than 2 mm into a body), with the robot held only where
 it could not see.
 
-The hardware path (real time, a second process holding one core) is not deterministic and runs
-apart: :func:`hardware_row`.
+The table runs its cells in worker processes, and the hardware path (real time, a second
+process holding one core) is not deterministic: both live in
+:mod:`hapticloud.hardware.session.safety_bench`.
 """
 
 from __future__ import annotations
 
 import math
-import os
-from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -102,39 +101,6 @@ def run_cell(scene_name: str, row: Degradation, duration_s: float | None) -> dic
     }
 
 
-def _cell(args: tuple[str, Degradation, float | None]) -> dict[str, Any]:
-    from ..threads import settle_numerics
-
-    settle_numerics()
-    return run_cell(*args)
-
-
-def run_table(
-    scenes: Sequence[str] = SCENES,
-    rows: Sequence[Degradation] | None = None,
-    duration_s: float | None = None,
-    workers: int | None = None,
-    progress: Callable[[dict[str, Any]], None] | None = None,
-) -> list[dict[str, Any]]:
-    """Every (degradation, scene) cell, in row order; ``workers`` processes (default: cores)."""
-    rows = degradations() if rows is None else list(rows)
-    jobs = [(scene, row, duration_s) for row in rows for scene in scenes]
-    n = workers or max(1, min(len(jobs), os.cpu_count() or 1))
-    cells: list[dict[str, Any]] = []
-    if n == 1:
-        for job in jobs:
-            cells.append(run_cell(*job))
-            if progress is not None:
-                progress(cells[-1])
-        return cells
-    with ProcessPoolExecutor(n) as pool:
-        for cell in pool.map(_cell, jobs):
-            cells.append(cell)
-            if progress is not None:
-                progress(cell)
-    return cells
-
-
 def table_lines(cells: Sequence[Mapping[str, Any]], scenes: Sequence[str]) -> list[str]:
     """A Markdown table: degradation x scene -> min margin, time held/stopped, verdict."""
     by = {(c["degradation"], c["scene"]): c for c in cells}
@@ -172,6 +138,5 @@ __all__ = [
     "degradations",
     "overrides_for",
     "run_cell",
-    "run_table",
     "table_lines",
 ]

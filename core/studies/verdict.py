@@ -114,6 +114,28 @@ def _why(i: int, t: FloatArray, space: FloatArray | None, age: FloatArray | None
     return "the constraints did not hold (estimate error or too little torque)"
 
 
+def judge_estimates(
+    t: FloatArray,
+    d_proj_estimated_m: FloatArray,
+    d_proj_true_m: FloatArray,
+    allowed_m: float = ALLOWED_PENETRATION_M,
+) -> Verdict:
+    """Open-loop runs (no control): SAFE when no valid estimate put the surface more than
+    ``allowed_m`` farther from the HIP than it truly was (the optimistic, unsafe side).
+
+    The margin judged is ``d_true - d_estimated`` (negative = optimistic) per estimate.
+    """
+    margin = np.asarray(d_proj_true_m, dtype=np.float64) - np.asarray(d_proj_estimated_m)
+    v = judge(np.asarray(t, dtype=np.float64), margin, allowed_penetration_m=allowed_m)
+    if v.safe is False:
+        return Verdict(
+            False, v.min_margin_m, v.t_min_s, "an estimate reported the surface farther", allowed_m
+        )
+    if v.safe is None:
+        return Verdict(None, None, None, "no valid estimate to judge", allowed_m)
+    return v
+
+
 def no_truth(
     min_estimated_margin_m: float | None, t_min_s: float | None, events: Sequence[str]
 ) -> Verdict:
@@ -149,6 +171,7 @@ __all__ = [
     "UNSAFE_EXIT_CODE",
     "Verdict",
     "judge",
+    "judge_estimates",
     "no_truth",
     "space_summary",
 ]
