@@ -37,11 +37,22 @@ REACTION_COLOURS = {
     "DAMPING": "#b35900",
     "TORQUE_OFF": "#b00020",
 }
-ALARM_COLOURS = {"state": "#1b3a57", "reaction": "#b35900", "app": "#6f1d1b"}
+ALARM_COLOURS = {
+    "state": "#1b3a57",
+    "reaction": "#b35900",
+    "space": "#7a5b00",
+    "app": "#6f1d1b",
+}
+SPACE_COLOURS = {"known": "#1b5e20", "holding": "#7a5b00", "stopped": "#b35900"}
 
 #: The figures shown, in order: key -> (label, tool tip).
 FIELDS = {
     "reaction": ("reaction", "watchdog reaction level, its source and reason"),
+    "space": (
+        "space",
+        "what the tick knows around the HIP: known (a fresh surface or proven free space), "
+        "holding (the last surface held and grown) or stopped (position held), and why",
+    ),
     "rate": ("control rate", "ticks per second of the loop (target 800 Hz)"),
     "misses": ("misses", "ticks that missed their 1250 µs deadline since start"),
     "tick": ("tick", "time of the newest tick / the longest since the previous snapshot"),
@@ -122,13 +133,13 @@ class SessionPanel(QtWidgets.QWidget):
             name.setStyleSheet("color:#555555;")
             name.setToolTip(tip)
             value.setToolTip(tip)
-            if key in ("reaction", "cameras", "dropped"):  # long: a full row
-                row = 0 if key == "reaction" else 10 + len(self.values)
+            if key in ("reaction", "space", "cameras", "dropped"):  # long: a full row
+                row = {"reaction": 0, "space": 1}.get(key, 10 + len(self.values))
                 value.setWordWrap(True)
                 grid.addWidget(name, row, 0)
                 grid.addWidget(value, row, 1, 1, 3)
             else:
-                row, col = 1 + small // 2, 2 * (small % 2)
+                row, col = 2 + small // 2, 2 * (small % 2)
                 grid.addWidget(name, row, col)
                 grid.addWidget(value, row, col + 1)
                 small += 1
@@ -216,6 +227,11 @@ class SessionPanel(QtWidgets.QWidget):
             f"{snap.reaction_reason}"
         )
         v = self.values
+        colour = SPACE_COLOURS.get(snap.space, "#333333")
+        why = f": {snap.space_reason}" if snap.space_reason else ""
+        v["space"].setText(
+            f"<span style='color:{colour}; font-weight:600'>{snap.space.upper()}</span>{why}"
+        )
         v["rate"].setText(_num(snap.control_rate_hz, ".1f", "Hz"))
         ticks = max(snap.tick, 1)
         v["misses"].setText(f"{snap.misses} ({1e4 * snap.misses / ticks:.1f}/10k)")

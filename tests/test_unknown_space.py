@@ -198,3 +198,33 @@ def test_an_unsafe_run_exits_with_its_own_code() -> None:
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == UNSAFE_EXIT_CODE, done.stderr
     assert done.stdout.strip().splitlines()[-1].startswith("UNSAFE: min margin")
+
+
+def test_bench_safety_prints_the_table_and_its_verdicts(tmp_path) -> None:  # noqa: ANN001
+    out = tmp_path / "cells.json"
+    cmd = [
+        sys.executable,
+        "-m",
+        "hapticloud.app.cli",
+        "bench",
+        "safety",
+        "--scenes",
+        "demo",
+        "--only",
+        "decimation 16, both",
+        "--duration",
+        "1.5",
+        "--workers",
+        "1",
+        "--json",
+        str(out),
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "| decimation 16, both cameras | " in done.stdout
+    assert done.stdout.strip().splitlines()[-1] == "1 of 1 runs SAFE"
+    import json
+
+    (cell,) = json.loads(out.read_text())["cells"]
+    # Nothing can be resolved at decimation 16: the robot is held still the whole run.
+    assert cell["verdict"] == "SAFE" and cell["stopped_fraction"] == 1.0

@@ -115,6 +115,44 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     gui.add_argument("--json", action="store_true", help="print one JSON object")
     gui.set_defaults(handler=run_gui)
+    _register_safety(studies)
+
+
+def _register_safety(studies: argparse._SubParsersAction) -> None:
+    safety = studies.add_parser(
+        "safety",
+        help="the shipped scenes under the degradations a clinic meets: SAFE or UNSAFE each",
+        description="Runs the shipped scenes with cameras (demo, impacts, sliding) under each "
+        "degradation (decimation 2/4/8/16 on one and both cameras, a camera that stops, frames "
+        "delayed 50/150/400 ms, frames dropped 10/50 %%, perception slowed, the largest legal "
+        "voxel), deterministic and judged on the simulator's truth, and prints a table: the "
+        "smallest true margin, the share of the run held or stopped, the verdict. --hardware "
+        "adds the hardware path in real time with another process holding one core. Exits 3 "
+        "when a cell is UNSAFE.",
+    )
+    safety.add_argument(
+        "--scenes",
+        default="demo,impacts,sliding",
+        metavar="A,B",
+        help="shipped scenes with cameras, comma-separated (demo,impacts,sliding)",
+    )
+    safety.add_argument(
+        "--only", metavar="TEXT", help="only the degradations whose name contains TEXT"
+    )
+    safety.add_argument(
+        "--duration",
+        type=positive_float,
+        metavar="S",
+        help="simulated s per cell (default: each scene's own)",
+    )
+    safety.add_argument(
+        "--hardware", action="store_true", help="also the hardware path with one core busy"
+    )
+    safety.add_argument(
+        "--workers", type=positive_int, metavar="N", help="processes (default: the cores)"
+    )
+    safety.add_argument("--json", metavar="PATH", help="also write every cell as JSON")
+    safety.set_defaults(handler=run_safety)
 
 
 def run_perception(args: argparse.Namespace) -> int:
@@ -164,3 +202,47 @@ def run_gui(args: argparse.Namespace) -> int:
     from hapticloud.app import bench_gui
 
     return bench_gui.main(args.duration, args.json, sys.stdout)
+
+
+def run_safety(args: argparse.Namespace) -> int:
+    check_duration(args.duration)
+    check_outputs(files={"--json": args.json})
+    from hapticloud.core.studies import safety as study
+
+    scenes = [name.strip() for name in args.scenes.split(",") if name.strip()]
+    for name in scenes:
+        if name not in study.SCENES:
+            raise ConfigError(
+                f"--scenes {name!r}: not a shipped scene with cameras ({', '.join(study.SCENES)})"
+            )
+    rows = [r for r in study.degradations() if not args.only or args.only in r.name]
+    if not rows:
+        raise ConfigError(f"--only {args.only!r}: matches no degradation")
+    from hapticloud.hardware.session.safety_bench import hardware_cell, run_table
+
+    n = len(rows) * len(scenes)
+    print(f"bench safety: {len(rows)} degradations x {len(scenes)} scenes = {n} runs", flush=True)
+    cells = run_table(
+        scenes,
+        rows,
+        args.duration,
+        args.workers,
+        progress=lambda c: print(f"  {c['scene']:8s} {c['degradation']}: {c['line']}", flush=True),
+    )
+    if args.hardware:
+        print("  hardware path, one core busy (impacts, 10 s in real time) ...", flush=True)
+        cells.append(hardware_cell("impacts", args.duration or 10.0))
+        scenes = [*scenes, *([] if "impacts" in scenes else ["impacts"])]
+    print("\n".join(study.table_lines(cells, scenes)))
+    if args.json:
+        import json
+        from pathlib import Path
+
+        Path(args.json).write_text(json.dumps({"cells": cells}, indent=1))
+    unsafe = [c for c in cells if c["verdict"] == "UNSAFE"]
+    print(f"{len(cells) - len(unsafe)} of {len(cells)} runs SAFE" + (": UNSAFE:" if unsafe else ""))
+    for c in unsafe:
+        print(f"  {c['scene']} / {c['degradation']}: {c['line']}")
+    from hapticloud.core.studies.verdict import UNSAFE_EXIT_CODE
+
+    return UNSAFE_EXIT_CODE if unsafe else 0

@@ -100,7 +100,7 @@ class ControlSnapshot(NamedTuple):
     reaction changes and configuration results no earlier snapshot carried, oldest first, up to
     eight (the rest follow in the next snapshots; those left when the loop stops come in one
     last snapshot, received by :meth:`ControlProcess.stop`): ``(t, kind, text)`` with kind
-    ``"state"``, ``"reaction"`` or ``"config"``.
+    ``"state"``, ``"reaction"``, ``"space"`` or ``"config"``.
     """
 
     seq: int
@@ -128,6 +128,10 @@ class ControlSnapshot(NamedTuple):
     dropped_snapshots: int
     bus_load: float
     events: tuple[tuple[float, str, str], ...]
+    #: What the tick knows of the space around the HIP (``known``, ``holding``, ``stopped``:
+    #: :class:`~hapticloud.core.haptics.unknown.SpaceState`) and why.
+    space: str = "known"
+    space_reason: str = ""
 
 
 # ----- the child ---------------------------------------------------------------------------------
@@ -378,6 +382,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
         pending_events: list[tuple[float, str, str]] = []
         last_tr: Any = None
         last_r: Any = None
+        last_sp: Any = None
         min_d = math.inf
         tick_max = 0.0
         rate_t, rate_i, rate = time.monotonic(), 0, 0.0
@@ -629,6 +634,9 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                 # Session and watchdog changes since the last snapshot that got out.
                 last_tr = _collect(machine.log, last_tr, pending_events, "state", _state_text)
                 last_r = _collect(wd.log, last_r, pending_events, "reaction", _reaction_text)
+                last_sp = _collect(
+                    hloop.guard.transitions, last_sp, pending_events, "space", _space_text
+                )
                 if _writable(out_fd):
                     seq += 1
                     load = fb.bus_load_since(last_fb) if last_fb is not None else math.nan
@@ -665,6 +673,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                                 dropped,
                                 load,
                                 tuple(pending_events[:_MAX_EVENTS_PER_SNAPSHOT]),
+                                hloop.guard.state.label,
+                                hloop.guard.reason[:160],
                             ),
                         )
                     )
@@ -713,6 +723,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
     stats = dl.stats().as_dict()
     _collect(machine.log, last_tr, pending_events, "state", _state_text)
     _collect(wd.log, last_r, pending_events, "reaction", _reaction_text)
+    _collect(hloop.guard.transitions, last_sp, pending_events, "space", _space_text)
     out_conn.send(
         (
             "result",
@@ -753,6 +764,10 @@ def _state_text(tr: Any) -> str:
 
 def _reaction_text(r: Any) -> str:
     return f"{r.level.name} {r.source}: {r.reason}"
+
+
+def _space_text(tr: Any) -> str:
+    return f"{tr.state.label}: {tr.reason}" if tr.reason else tr.state.label
 
 
 def _collect(
