@@ -251,3 +251,23 @@ def test_compare_paper_alone_is_refused_as_its_help_says(wall: str, capsys, no_r
     assert "only with --sweep" in help_text
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     assert "`--compare-paper` needs `--sweep`" in readme
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "needle"),
+    [
+        ("noise.toml", bytes(range(128, 256)) * 8, "not text"),
+        ("session.mcap", b"\x89MCAP0\r\n" + bytes(range(128, 256)), "a recording (.mcap)"),
+        ("cut.toml", b"[scene\nname = ", "not valid TOML"),
+    ],
+)
+@pytest.mark.parametrize("command", ["app", "run"])
+def test_a_file_that_is_not_a_scene_is_one_line(
+    tmp_path: Path, capsys, name: str, content: bytes, needle: str, command: str
+) -> None:
+    path = tmp_path / name
+    path.write_bytes(content)
+    err = _refused(
+        [command, str(path), *(["--exit-after", "1"] if command == "app" else [])], capsys
+    )
+    assert str(path) in err and needle in err

@@ -130,6 +130,15 @@ def load_scene(path: str | Path, overrides: Mapping[str, Any] | None = None) -> 
         raise ConfigError(f"{path}: no such scene file") from None
     except IsADirectoryError:
         raise ConfigError(f"{path}: is a directory, not a scene file") from None
+    except UnicodeDecodeError as err:
+        kind = "a recording (.mcap), not a scene file" if path.suffix == ".mcap" else "not text"
+        raise ConfigError(
+            f"{path}: {kind} (byte {err.start} is not UTF-8): expected a scene file (TOML)"
+        ) from None
+    except OSError as err:
+        raise ConfigError(
+            f"{path}: cannot be read ({err.strerror or type(err).__name__})"
+        ) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
