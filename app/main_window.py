@@ -23,6 +23,7 @@ from PyQt6 import QtCore, QtGui, QtWidgets
 from .live_plots import LivePlots
 from .live_source import LiveConfig, Snapshot, SnapshotSource, SourceState
 from .param_panel import ParamPanel
+from .report import AppReport
 from .scene_view import CAMERA_PRESETS, COLOR_MODES, LAYERS, SceneView
 from .session import Session, SessionPhase
 from .session_panel import STATE_STYLE, SessionPanel
@@ -243,6 +244,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._attached = False
         self._applied = config
         self._control_seq = -1
+        #: Figures for ``hapticloud app --report`` (set by the command before the first poll).
+        self.report: AppReport | None = None
         self._control_painted = 0.0
         self._control_plotted = 0.0
         if make_session is not None:
@@ -319,6 +322,8 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         snap = session.poll()
         state = self.session_panel.state_text()
+        if self.report is not None:
+            self.report.observe_session(state, session)
         self.session_panel.refresh()
         self.status.show_session(
             state, session.latest, STATE_STYLE.get(state, STATE_STYLE["closed"])
@@ -422,6 +427,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.shown = snap
         self.view.show_snapshot(snap)
         now = time.monotonic()
+        if self.report is not None:
+            self.report.observe_frame(snap, self.view_fps, now)
         if now - self._plotted >= PLOT_PERIOD_S or snap.state is not SourceState.RUNNING:
             self._plotted = now
             self.plots.show_snapshot(snap)

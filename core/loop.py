@@ -385,7 +385,7 @@ class HapticLoop:
             self.tick(t + 10.0, q, qd, fused=lost)  # stopped: the position hold
         finally:
             self.fusion = saved
-            self.guard.reset()
+            self.guard = SurfaceGuard(self.config.unknown)  # and no warm-up in its log
             self._solved_last = False
             self._last_x = None
             self.last_fused = None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -62,14 +63,17 @@ def test_screenshot_writes_a_png_with_the_3d_view(tmp_path: Path, gui_display: s
     from PyQt6 import QtGui
 
     png = tmp_path / "window.png"
+    report = tmp_path / "report.json"
     # No DISPLAY: the command starts its own virtual display (what CI and docs builds need).
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     result = _run(
         "app",
         "--screenshot",
         str(png),
+        "--report",
+        str(report),
         "--exit-after",
-        "3",
+        "6",
         "--size",
         "1280x800",
         "--decimation",
@@ -78,6 +82,7 @@ def test_screenshot_writes_a_png_with_the_3d_view(tmp_path: Path, gui_display: s
     )
     assert result.returncode == 0, result.stderr
     assert f"screenshot: {png}" in result.stdout
+    _check_report(json.loads(report.read_text()), result.stdout)
     image = QtGui.QImage(str(png))
     assert (image.width(), image.height()) == (1280, 800)
     rgb = qimage_to_array(image)
@@ -91,6 +96,23 @@ def test_screenshot_writes_a_png_with_the_3d_view(tmp_path: Path, gui_display: s
     assert view.shape[0] > 300 and view.shape[1] > 500
     assert view.std() > 20
     assert len(np.unique(view.reshape(-1, 3) // 8, axis=0)) > 100
+
+
+def _check_report(rep: dict, stdout: str) -> None:
+    """The report's fields exist and are computed from what ran (the thresholds are the
+    benchmark's, not this test's)."""
+    session = rep["session"]
+    states = [state for _, state in session["states"]]
+    assert states[0] == "starting" and "ready" in states, states
+    assert all(t >= 0 for t, _ in session["states"]) and isinstance(session["faults"], list)
+    assert session["misses_per_10k"] is not None and session["misses_per_10k"] >= 0
+    assert set(rep["cameras"]) == {"front", "right45"}
+    assert all(0 < cam["rate_hz_median"] < 100 for cam in rep["cameras"].values())
+    assert 0 < rep["sim"]["real_time_factor_median"] < 10
+    assert rep["view"]["fps_median"] > 0 and rep["view"]["frame_to_screen_ms_median"] > 0
+    assert set(rep["fused_error_mm"]) >= {"n", "median", "p90"}
+    assert rep["verdict"] in ("SAFE", "UNSAFE") and rep["truth"]["min_margin_m"] is not None
+    assert rep["truth"]["line"] in stdout
 
 
 @pytest.mark.parametrize(

@@ -46,6 +46,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--screenshot", metavar="PATH", help="save the window as PNG after --exit-after seconds"
     )
     parser.add_argument(
+        "--report",
+        metavar="PATH",
+        help="write what the window showed as JSON at exit: session states and faults, camera "
+        "rates, real-time factor, fused error against the truth, view fps, frame-to-screen "
+        "latency and the run's verdict (SAFE/UNSAFE)",
+    )
+    parser.add_argument(
         "--exit-after",
         metavar="S",
         type=positive_float,
@@ -99,7 +106,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from hapticloud.app.live_source import LiveConfig, SimSettings, scene_spec
 
-    check_outputs(files={"--screenshot": args.screenshot})
+    check_outputs(files={"--screenshot": args.screenshot, "--report": args.report})
     # A one-line error for an unknown scene, a bad file or one the app cannot show, before any
     # process starts (the build is cached: the window reuses it).
     scene_spec(args.scene).build(decimation=args.decimation)
@@ -159,6 +166,10 @@ def _run_window(
             None if args.no_session else (lambda: Session(scene, enable_when_ready=args.enable))
         ),
     )
+    if args.report:
+        from hapticloud.app.report import AppReport
+
+        window.report = AppReport(window.source.geometry.r_hip_m if window.source else 0.04)
     window.controls.color_mode.setCurrentText(args.color_by)
     window.controls.preset_actions[args.view].trigger()
     window.resize(*args.size)
@@ -166,6 +177,9 @@ def _run_window(
     result = {"code": 0}
 
     def finish() -> None:
+        if window.report is not None:
+            print(f"report: {window.report.write(args.report)}", flush=True)
+            print(window.report.to_json()["truth"]["line"], flush=True)
         if shot is not None:
             try:
                 path = save_window(window, shot)
