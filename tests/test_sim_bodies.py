@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
+import open3d as o3d
 import pytest
 from hapticloud.core.errors import InputError
 from hapticloud.core.sim.bodies import (
@@ -18,7 +20,7 @@ from hapticloud.core.sim.bodies import (
 from hapticloud.core.sim.ellipsoid import closest_point_on_ellipsoid
 from hapticloud.core.sim.scenes import rotation_xyz
 from hapticloud.core.sim.world import SimWorld
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 ROT = rotation_xyz(20.0, -35.0, 50.0)
@@ -226,6 +228,9 @@ def test_ellipsoid_centre_of_body_world_frame() -> None:
     scale=st.one_of(st.floats(0.0, 3.0), st.floats(1 - 1e-9, 1 + 1e-9), st.floats(3.0, 1e3)),
     snap=st.sampled_from(["none", "axis0", "axis1", "axis2", "plane01", "equal"]),
 )
+# Found by hypothesis: a subnormal query put the bisection's parameter in the subnormals.
+@example(axes=[0.25, 0.25, 0.25], direction=[0.0, 1.0, 1.0], scale=2.2250738585e-313, snap="none")
+@example(axes=[0.1, 0.1, 0.1], direction=[1e-310, 2e-310, 3e-310], scale=1.0, snap="none")
 def test_ellipsoid_property_kkt_and_global(axes, direction, scale, snap) -> None:
     e = np.array(axes)
     if snap == "equal":
@@ -355,3 +360,266 @@ def test_bad_arguments_name_the_argument() -> None:
         SimWorld([BODIES["sphere"], BODIES["sphere"]])
     with pytest.raises(InputError, match="no such body"):
         SimWorld([BODIES["sphere"]]).body("nobody")
+
+
+# ----- closest points anywhere: on an axis, at the centre, far from the origin ------------------
+#
+# The checks below never ask the body about its own answer: each shape's signed distance is
+# computed here in closed form (the ellipsoid, which has none, by its implicit function and by
+# dense sampling of its surface), and Open3D's distance to a fine mesh checks it once more.
+
+FAR = np.array([1e3, -1e3, 1e3])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _perp(u: np.ndarray) -> np.ndarray:
+    return _unit(np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0]))
+
+
+def _scale(*arrays: np.ndarray) -> float:
+    """Magnitude of the coordinates involved (m): the rounding errors scale with it."""
+    return 1.0 + max(float(np.abs(a).max()) for a in arrays)
+
+
+def _tol(*arrays: np.ndarray) -> float:
+    """Round-off allowed on a distance or a coordinate (m): ~100 ulps of the coordinates."""
+    return 2e-14 * _scale(*arrays)
+
+
+def reference_sdf(body, x: np.ndarray, t: float = 0.0) -> float | None:
+    """Signed distance from ``x`` (world) to the body at time ``t`` in closed form (None for the
+    ellipsoid: no closed form)."""
+    x = np.asarray(x, dtype=np.float64) - body.displacement(t)
+    if isinstance(body, SphereBody):
+        return float(np.linalg.norm(x - body.center) - body.radius_m)
+    if isinstance(body, CapsuleBody):
+        ab = body.b - body.a
+        s = float(np.clip((x - body.a) @ ab / (ab @ ab), 0.0, 1.0))
+        return float(np.linalg.norm(x - (body.a + s * ab)) - body.radius_m)
+    if isinstance(body, CylinderBody):
+        ab = body.b - body.a
+        u = _unit(ab)
+        rel = x - 0.5 * (body.a + body.b)
+        h = float(rel @ u)
+        rho = float(np.linalg.norm(rel - h * u))
+        d = np.array([rho - body.radius_m, abs(h) - 0.5 * np.linalg.norm(ab)])
+        return float(min(d.max(), 0.0) + np.linalg.norm(np.maximum(d, 0.0)))
+    if isinstance(body, BoxBody):
+        d = np.abs((x - body.center) @ body.rotation) - body.half_extents_m
+        return float(min(d.max(), 0.0) + np.linalg.norm(np.maximum(d, 0.0)))
+    return None
+
+
+def _ellipsoid_level(body: EllipsoidBody, x: np.ndarray) -> float:
+    """Implicit function of the ellipsoid, ``sum (x_i / a_i)^2 - 1`` (own frame)."""
+    local = ((x - body.displacement()) - body.center) @ body.rotation
+    return float(np.sum((local / body.semi_axes_m) ** 2) - 1.0)
+
+
+def check_closest_point(body, hip: np.ndarray) -> None:
+    """The answer for ``hip`` is a surface point, a unit normal and the signed distance."""
+    point, normal, dist = body.closest_point(hip)
+    lo, hi = body.bounds()
+    tol = _tol(hip, lo, hi)
+    assert abs(np.linalg.norm(normal) - 1.0) < 1e-12, normal
+    assert abs(np.linalg.norm(hip - point) - abs(dist)) <= tol, (dist, point)
+    ref_at_point, ref_at_hip = reference_sdf(body, point), reference_sdf(body, hip)
+    if ref_at_point is not None:
+        assert abs(ref_at_point) <= tol, f"closest point {ref_at_point:.3g} m off the surface"
+        assert abs(ref_at_hip - dist) <= tol, (ref_at_hip, dist)  # the distance, and its sign
+    else:  # ellipsoid: on the level set, on the right side, no surface sample nearer
+        e_min = float(body.semi_axes_m.min())
+        assert abs(_ellipsoid_level(body, point)) * e_min <= 4 * tol
+        level = _ellipsoid_level(body, hip)
+        if abs(level) * e_min > 4 * tol:
+            assert (dist < 0) == (level < 0)
+        samples = (
+            body.displacement()
+            + body.center
+            + (_fib_sphere(20000) * body.semi_axes_m) @ body.rotation.T
+        )
+        assert abs(dist) <= np.linalg.norm(samples - hip, axis=1).min() + tol
+    if abs(dist) > 1e-6:  # off the surface: the HIP lies along the normal from the point
+        np.testing.assert_allclose((hip - point) / dist, normal, atol=1e-6)
+
+
+@pytest.mark.parametrize("far", [0.0, 1e3])
+@pytest.mark.parametrize("name", ["capsule", "cylinder"])
+def test_a_query_on_the_axis_gets_a_surface_point_and_a_radial_normal(name, far) -> None:
+    base = BODIES[name]
+    shift = far * np.array([1.0, -1.0, 1.0])
+    # Far from the origin both ways: the rest shape out there, or a body moved out there.
+    for body in (base.moved(shift), dataclasses.replace(base, a=base.a + shift, b=base.b + shift)):
+        a, b = body.a + body.offset_m, body.b + body.offset_m
+        u, length = _unit(b - a), float(np.linalg.norm(b - a))
+        # The side is nearest all along a capsule; a cylinder's caps within a radius of them.
+        cap = 0.0 if name == "capsule" else body.radius_m / length
+        for s in np.concatenate((np.linspace(-0.3, 1.3, 321), [0.0, 0.5, 1.0])):
+            hip = a + s * (b - a)  # on the axis within rounding
+            check_closest_point(body, hip)
+            _, normal, dist = body.closest_point(hip)
+            if cap + 1e-9 < s < 1 - cap - 1e-9:  # a radial normal, the radius deep
+                assert abs(normal @ u) < 1e-12
+                assert dist == pytest.approx(-body.radius_m, abs=_tol(hip))
+        check_closest_point(body, a)
+        check_closest_point(body, b)
+        check_closest_point(body, 0.5 * (a + b))
+
+
+@pytest.mark.parametrize("far", [0.0, 1e3])
+def test_cylinder_rim_normal_is_unit_and_points_from_the_rim_circle(far) -> None:
+    base = BODIES["cylinder"]
+    shift = far * np.array([1.0, -1.0, 1.0])
+    body = dataclasses.replace(base, a=base.a + shift, b=base.b + shift)
+    u = _unit(body.b - body.a)
+    e1 = _perp(u)
+    e2 = np.cross(u, e1)
+    steps = [0.0, 5e-324, 1e-300, 1e-16, 1e-13, 1e-10, 1e-6, 1e-3, 0.05]
+    rng = np.random.default_rng(11)
+    for end, side in ((body.a, -1.0), (body.b, 1.0)):
+        for phi in np.linspace(0.0, 2 * math.pi, 7, endpoint=False):
+            radial = math.cos(phi) * e1 + math.sin(phi) * e2
+            rim = end + body.radius_m * radial
+            for dr in steps:
+                for dh in steps:
+                    hip = rim + dr * radial + dh * side * u
+                    check_closest_point(body, hip)
+                    if dr >= 1e-6 and dh >= 1e-6:  # beyond the edge: the rim point, from it
+                        point, normal, dist = body.closest_point(hip)
+                        np.testing.assert_allclose(point, rim, atol=_tol(hip))
+                        # hip - rim here is only as exact as the coordinates' round-off
+                        along = _tol(hip) / math.hypot(dr, dh)
+                        np.testing.assert_allclose(normal, _unit(hip - rim), atol=1e-12 + along)
+                        assert dist == pytest.approx(math.hypot(dr, dh), abs=_tol(hip))
+            for _ in range(20):  # within rounding of the rim, any way
+                check_closest_point(body, rim + rng.normal(size=3) * 10 ** rng.uniform(-17, -9))
+
+
+# Exact directions (an axis of the body's frame), and ones with subnormal or tiny components.
+_COMPONENT = st.one_of(
+    st.floats(-1.0, 1.0),
+    st.sampled_from([0.0, 5e-324, -5e-324, 2.2250738585e-313, -1e-310, 1e-300, 1e-17, -1e-16]),
+)
+_DIRECTION = st.lists(_COMPONENT, min_size=3, max_size=3)
+
+
+@st.composite
+def body_and_query(draw) -> tuple[object, np.ndarray]:
+    """Any body type, at the origin or 1e3 m out (as its rest shape or moved there), and a
+    query anywhere, on one of its axes, at its centre, near its surface or a subnormal step off
+    its centre."""
+    kind = draw(st.sampled_from(["sphere", "ellipsoid", "capsule", "cylinder", "box"]))
+    centre = np.array(draw(st.lists(st.floats(-0.5, 0.5), min_size=3, max_size=3)))
+    far = draw(st.sampled_from(["origin", "rest_far", "moved_far"]))
+    if far == "rest_far":
+        centre = centre + FAR
+    angles = draw(st.one_of(st.just((0.0, 0.0, 0.0)), st.tuples(*[st.floats(-180.0, 180.0)] * 3)))
+    rot = rotation_xyz(*angles)
+    size = st.floats(0.01, 0.3)
+    if kind == "sphere":
+        body = SphereBody(name="q", part="face", center=centre, radius_m=draw(size))
+        frame, reach = np.eye(3), np.full(3, body.radius_m)
+    elif kind == "ellipsoid":
+        axes = np.array(draw(st.lists(size, min_size=3, max_size=3)))
+        body = EllipsoidBody(name="q", part="face", center=centre, semi_axes_m=axes, rotation=rot)
+        frame, reach = rot, axes
+    elif kind == "box":
+        half = np.array(draw(st.lists(size, min_size=3, max_size=3)))
+        body = BoxBody(name="q", part="chest", center=centre, half_extents_m=half, rotation=rot)
+        frame, reach = rot, half
+    else:
+        length, radius = draw(st.floats(0.02, 0.6)), draw(size)
+        half_axis = 0.5 * length * rot[:, 2]
+        cls = CapsuleBody if kind == "capsule" else CylinderBody
+        body = cls(
+            name="q", part="forearm", a=centre - half_axis, b=centre + half_axis, radius_m=radius
+        )
+        frame = np.column_stack((rot[:, 0], rot[:, 1], rot[:, 2]))
+        reach = np.array([radius, radius, 0.5 * length + (radius if kind == "capsule" else 0)])
+    if far == "moved_far":
+        body = body.moved(FAR)
+        centre = centre + FAR
+    where = draw(st.sampled_from(["anywhere", "axis", "centre", "surface", "subnormal"]))
+    if where == "anywhere":
+        u = np.array(draw(st.lists(st.floats(-1.6, 1.6), min_size=3, max_size=3)))
+        lo, hi = body.bounds()
+        hip = 0.5 * (lo + hi) + u * 0.5 * (hi - lo)
+    elif where == "axis":
+        k = draw(st.integers(0, 2))
+        hip = centre + draw(st.floats(-1.6, 1.6)) * reach[k] * frame[:, k]
+    elif where == "centre":
+        hip = centre.copy()
+    elif where == "surface":
+        point = body.closest_point(centre + np.array(draw(_DIRECTION)) * 10.0).point
+        hip = point + np.array(draw(_DIRECTION)) * draw(st.sampled_from([1e-15, 1e-9, 1e-3]))
+    else:
+        hip = centre + np.array(draw(_DIRECTION)) * draw(st.sampled_from([1.0, 1e-300, 1e-310]))
+    return body, hip
+
+
+@settings(max_examples=300, deadline=None)
+@given(case=body_and_query())
+def test_property_closest_point_is_on_the_surface_with_a_unit_normal_and_signed_distance(
+    case,
+) -> None:
+    body, hip = case
+    check_closest_point(body, hip)
+
+
+@pytest.mark.parametrize("name", list(BODIES))
+def test_closest_point_agrees_with_open3d_on_a_fine_mesh(name: str) -> None:
+    body = BODIES[name]
+    v, f = body.mesh_arrays()  # inscribed within MESH_TOLERANCE_M
+    scene = o3d.t.geometry.RaycastingScene()
+    # Open3D works in float32: the mesh is built about the body's centre, and so are the queries.
+    lo, hi = body.bounds()
+    mid = 0.5 * (lo + hi)
+    scene.add_triangles(
+        o3d.core.Tensor((v - mid).astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32))
+    )
+    rng = np.random.default_rng(17)
+    queries = [*_queries(body, rng, 200), mid]
+    if isinstance(body, (CapsuleBody, CylinderBody)):
+        queries += [body.a + s * (body.b - body.a) for s in np.linspace(-0.2, 1.2, 57)]
+    elif isinstance(body, (EllipsoidBody, BoxBody)):
+        reach = body.semi_axes_m if isinstance(body, EllipsoidBody) else body.half_extents_m
+        queries += [
+            body.center + s * reach[k] * body.rotation[:, k]
+            for k in range(3)
+            for s in np.linspace(-1.4, 1.4, 29)
+        ]
+    queries = np.array(queries)
+    ref = scene.compute_signed_distance(o3d.core.Tensor((queries - mid).astype(np.float32))).numpy()
+    for far in (np.zeros(3), FAR):  # the same answers 1e3 m away, to round-off
+        moved = body.moved(far)
+        got = np.array([moved.closest_point(q + far).distance_m for q in queries])
+        # The inscribed mesh lies within MESH_TOLERANCE_M inside the surface; float32 adds ~1e-7.
+        np.testing.assert_allclose(got, ref, atol=MESH_TOLERANCE_M * 1.01 + 2e-7)
+        for q in queries:
+            check_closest_point(moved, q + far)
+
+
+@pytest.mark.parametrize(
+    ("axes", "q"),
+    [
+        ([0.25, 0.25, 0.25], [0.0, 0.25 * 2.2250738585e-313, 0.25 * 2.2250738585e-313]),
+        ([0.1, 0.1, 0.1], [1e-311, 2e-311, 3e-311]),
+        ([0.2, 0.2, 0.3], [2e-311, 2e-311, 0.075]),
+        ([0.2, 0.2, 0.3], [2e-311, 2e-311, 0.0]),
+        ([0.2, 0.1, 0.1], [2e-311, 2e-311, 3e-311]),
+        ([0.2, 0.1, 0.3], [5e-324, 0.05, 0.075]),
+        ([0.3, 0.2, 0.1], [5e-324, 5e-324, 5e-324]),
+    ],
+)
+def test_ellipsoid_queries_with_subnormal_components(axes, q) -> None:
+    """Queries a subnormal step from a symmetry plane or the centre: the closest point is on
+    the surface to the last bits (the bisection's parameter used to be subnormal itself)."""
+    e, q = np.array(axes), np.array(q)
+    x = closest_point_on_ellipsoid(e, q)
+    on_surface, across = _kkt_residual(e, q, x)
+    assert on_surface < 1e-15 and across < 1e-15
+    brute = np.linalg.norm(_fib_sphere(20000) * e - q, axis=1).min()
+    assert np.linalg.norm(q - x) <= brute + 1e-12

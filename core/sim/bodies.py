@@ -20,8 +20,10 @@ Example
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import ClassVar, NamedTuple, Self
 
 import numpy as np
@@ -60,6 +62,13 @@ MESH_TOLERANCE_M = 1e-5
 _ZERO3 = np.zeros(3)
 _ZERO3.setflags(write=False)
 
+#: Round-off of a closest-point computation, relative to the magnitude of the coordinates involved
+#: (the query's, the body's and its displacement's): ~64 ulps. A query closer than that to an axis
+#: (or a centre) of a body is *on* it: its offset from it is round-off, not a direction.
+_ROUND_OFF = 64 * float(np.finfo(np.float64).eps)
+_PLUS_Z = np.array([0.0, 0.0, 1.0])
+_PLUS_Z.setflags(write=False)
+
 
 class SurfacePoint(NamedTuple):
     """A closest surface point: ``point`` (3,) m, outward unit ``normal`` (3,), ``distance_m``."""
@@ -96,7 +105,15 @@ def _rotation(value: ArrayLike, name: str = "rotation") -> FloatArray:
 
 
 def _any_perpendicular(axis: FloatArray) -> FloatArray:
-    return meshing.frame_from_axis(axis)[:, 0]
+    out = meshing.frame_from_axis(axis)[:, 0]
+    out.setflags(write=False)
+    return out
+
+
+def _magnitude(v: FloatArray) -> float:
+    """Largest absolute coordinate of a (3,) vector."""
+    x, y, z = v.tolist()
+    return max(abs(x), abs(y), abs(z))
 
 
 _MESH_CACHE: OrderedDict[tuple, tuple[FloatArray, IndexArray]] = OrderedDict()
@@ -147,10 +164,15 @@ class Body:
             ``(point, normal, distance_m)``: the surface point, the outward unit surface normal
             there, and the signed distance from the surface to ``hip`` (negative inside).
             On an edge of a box or cylinder, ``normal`` is the direction from the point to an
-            outside ``hip``.
+            outside ``hip``. Where several points are equally near (``hip`` on an axis of a
+            capsule or cylinder, at a centre) one of them is returned; ``hip`` within round-off
+            of such a place counts as on it, so the answer is on the surface wherever ``hip``
+            is, also 1e3 m from the origin.
         """
+        hip = as_vector3(hip, "hip")
         shift = self.displacement(t)
-        point, normal, dist = self._closest_rest(as_vector3(hip, "hip") - shift)
+        noise = _ROUND_OFF * (_magnitude(hip) + _magnitude(shift) + self._size_m)
+        point, normal, dist = self._closest_rest(hip - shift, noise)
         return SurfacePoint(point + shift, normal, float(dist))
 
     def intersect_rays(
@@ -219,7 +241,14 @@ class Body:
         """Hashable identity of the rest shape (type and exact parameters)."""
         raise NotImplementedError
 
-    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+    @cached_property
+    def _size_m(self) -> float:
+        """Magnitude of the rest shape's coordinates (m): scales the round-off tolerance."""
+        lo, hi = self._bounds_rest()
+        return max(_magnitude(lo), _magnitude(hi))
+
+    def _closest_rest(self, p: FloatArray, noise: float) -> tuple[FloatArray, FloatArray, float]:
+        """Closest point to ``p`` in the rest pose; offsets up to ``noise`` (m) are round-off."""
         raise NotImplementedError
 
     def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -251,11 +280,12 @@ class SphereBody(Body):
     def shape_key(self) -> tuple:
         return _key("sphere", self.center, self.radius_m)
 
-    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+    def _closest_rest(self, p: FloatArray, noise: float) -> tuple[FloatArray, FloatArray, float]:
         v = p - self.center
         r = float(np.linalg.norm(v))
-        # At the centre every direction is nearest; +z is as good as any.
-        n = v / r if r > 0 else np.array([0.0, 0.0, 1.0])
+        # At the centre every direction is nearest; +z is as good as any. Within round-off of it
+        # the direction is noise (and a subnormal offset would not even normalise to unit length).
+        n = v / r if r > noise else _PLUS_Z
         return self.center + self.radius_m * n, n, r - self.radius_m
 
     def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -288,7 +318,7 @@ class EllipsoidBody(Body):
     def shape_key(self) -> tuple:
         return _key("ellipsoid", self.center, self.semi_axes_m, self.rotation)
 
-    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+    def _closest_rest(self, p: FloatArray, noise: float) -> tuple[FloatArray, FloatArray, float]:
         q = (p - self.center) @ self.rotation
         x = closest_point_on_ellipsoid(self.semi_axes_m, q)
         n_local = ellipsoid_normal(self.semi_axes_m, x)
@@ -331,13 +361,28 @@ class CapsuleBody(Body):
     def shape_key(self) -> tuple:
         return _key("capsule", self.a, self.b, self.radius_m)
 
-    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+    @cached_property
+    def _frame(self) -> tuple[FloatArray, float, FloatArray]:
+        """Unit axis a -> b, length and a fixed unit perpendicular to the axis."""
         axis, length = _axis_frame(self.a, self.b)
-        s = float(np.clip((p - self.a) @ axis, 0.0, length))
-        on_axis = self.a + s * axis
-        v = p - on_axis
+        axis.setflags(write=False)
+        return axis, length, _any_perpendicular(axis)
+
+    def _closest_rest(self, p: FloatArray, noise: float) -> tuple[FloatArray, FloatArray, float]:
+        axis, length, perpendicular = self._frame
+        d = p - self.a
+        s = float(d @ axis)
+        if s <= 0.0:  # the ball at a (its hemisphere away from b: v . axis = s <= 0)
+            on_axis, v = self.a, d
+        elif s >= length:
+            on_axis, v = self.b, p - self.b
+        else:  # the side: the offset from the axis is radial; its axial part is round-off
+            on_axis = self.a + s * axis
+            v = p - on_axis
+            v = v - float(v @ axis) * axis
         r = float(np.linalg.norm(v))
-        n = v / r if r > 0 else _any_perpendicular(axis)
+        # On the axis (within round-off) every radial direction is nearest: take a fixed one.
+        n = v / r if r > noise else perpendicular
         return on_axis + self.radius_m * n, n, r - self.radius_m
 
     def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -370,13 +415,24 @@ class CylinderBody(Body):
     def shape_key(self) -> tuple:
         return _key("cylinder", self.a, self.b, self.radius_m)
 
-    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+    @cached_property
+    def _frame(self) -> tuple[FloatArray, float, FloatArray, FloatArray]:
+        """Unit axis a -> b, half length, a fixed unit perpendicular, the middle of a-b."""
         axis, length = _axis_frame(self.a, self.b)
-        mid, half = 0.5 * (self.a + self.b), 0.5 * length
-        h = float((p - mid) @ axis)
-        w = (p - mid) - h * axis
+        mid = 0.5 * (self.a + self.b)
+        axis.setflags(write=False)
+        mid.setflags(write=False)
+        return axis, 0.5 * length, _any_perpendicular(axis), mid
+
+    def _closest_rest(self, p: FloatArray, noise: float) -> tuple[FloatArray, FloatArray, float]:
+        axis, half, perpendicular, mid = self._frame
+        rel = p - mid
+        h = float(rel @ axis)
+        w = rel - h * axis
+        w = w - float(w @ axis) * axis  # radial: the axial part left is round-off
         rho = float(np.linalg.norm(w))
-        radial = w / rho if rho > 0 else _any_perpendicular(axis)
+        # On the axis (within round-off) every radial direction is nearest: take a fixed one.
+        radial = w / rho if rho > noise else perpendicular
         side = 1.0 if h >= 0 else -1.0
         d_r, d_h = rho - self.radius_m, abs(h) - half
         if d_r <= 0 and d_h <= 0:  # inside: leave through the nearer of side and cap
@@ -387,9 +443,16 @@ class CylinderBody(Body):
             return mid + h * axis + self.radius_m * radial, radial, d_r
         if d_r <= 0:
             return mid + side * half * axis + w, side * axis, d_h
+        # Beyond the rim: the nearest point is on the rim circle, and p - rim is
+        # d_r radial + d_h side axis exactly; the normal is built from those two (orthonormal)
+        # directions rather than from p - rim, whose round-off near the edge is of the order of
+        # the distance itself. Scaled by the larger part first: unit even for subnormal parts.
         rim = mid + side * half * axis + self.radius_m * radial
-        dist = float(np.hypot(d_r, d_h))
-        return rim, (p - rim) / dist, dist
+        big = max(d_r, d_h)
+        c_r, c_h = d_r / big, d_h / big
+        k = math.hypot(c_r, c_h)
+        normal = (c_r / k) * radial + (side * c_h / k) * axis
+        return rim, normal, math.hypot(d_r, d_h)
 
     def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
         return raycast.ray_cylinder(o, d, self.a, self.b, self.radius_m)
@@ -428,7 +491,7 @@ class BoxBody(Body):
     def shape_key(self) -> tuple:
         return _key("box", self.center, self.half_extents_m, self.rotation)
 
-    def _closest_rest(self, p: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+    def _closest_rest(self, p: FloatArray, noise: float) -> tuple[FloatArray, FloatArray, float]:
         q = (p - self.center) @ self.rotation
         half = self.half_extents_m
         excess = np.abs(q) - half
@@ -437,7 +500,12 @@ class BoxBody(Body):
             x = np.clip(q, -half, half)
             gap = q - x
             dist = float(np.linalg.norm(gap))
-            n_local = gap / dist
+            if dist > noise:
+                n_local = gap / dist
+            else:  # on the surface within round-off: the normal of the face it is out of most
+                i = int(np.argmax(excess))
+                n_local = np.zeros(3)
+                n_local[i] = sign[i]
         else:  # inside or on the surface: the nearest face
             i = int(np.argmax(excess))
             x = q.copy()

@@ -9,6 +9,13 @@ with ``r_i - 1`` formed as ``(e_i - e2)(e_i + e2) / e2^2``: that keeps queries w
 centre of a body with two equal semi-axes from dividing by zero. Points on a symmetry plane
 are reduced to the ellipse problem; that is where the closest point may leave the plane (a point
 inside, near the centre), and those cases have closed forms.
+
+Near the centre the root ``u`` is of the order of the query's components along the smallest axis
+(or axes, when several are equal); a query a subnormal step from the centre would put ``u`` among
+the subnormals, where a double keeps only a few bits, and the point ``y / u`` off the surface
+(1e-11 was seen). When ``u`` is that small it is negligible next to every ``r_i - 1 > 0``, the
+equation decouples and has a closed form (:func:`_negligible_root`), evaluated with the small
+components scaled by a power of two first (exact): full precision there too.
 """
 
 from __future__ import annotations
@@ -58,6 +65,49 @@ def _root_3d(r0m1: float, r1m1: float, n0: float, n1: float, z2: float, g: float
     )
 
 
+def _negligible_root(e: tuple[float, ...], y: tuple[float, ...]) -> list[float] | None:
+    """The closest point when the root ``u`` is negligible next to every ``r_i - 1 > 0``.
+
+    ``e`` sorted decreasing (the smallest last), ``y > 0`` componentwise. The axes equal to the
+    smallest (``r_i = 1``) give ``x_i = y_i / u``; the others ``x_i = r_i y_i / (u + r_i - 1)``.
+    If ``u`` is below half an ulp of every ``r_i - 1 > 0`` (and of 1) those are exactly
+    ``x_i = e_i^2 y_i / (e_i^2 - e_min^2)`` in floating point, and the constraint leaves
+    ``|x_equal| = e_min sqrt(1 - sum_others (x_i / e_i)^2)`` along ``y_equal``: the root in
+    closed form. Returns ``None`` where ``u`` is not that small (or the query is outside those
+    planes' ellipse), for the bisection. With all axes equal (a sphere) this is always exact.
+    """
+    e_min = e[-1]
+    discr = 1.0
+    gap = math.inf  # smallest r_i - 1 > 0
+    x = [0.0] * len(e)
+    equal: list[int] = []
+    for i, (ei, yi) in enumerate(zip(e, y, strict=True)):
+        if ei == e_min:
+            equal.append(i)
+            continue
+        d = (ei - e_min) * (ei + e_min)
+        xde = ei * yi / d
+        discr -= xde * xde
+        x[i] = ei * xde
+        gap = min(gap, d / (e_min * e_min))
+    if not discr > 0.0:
+        return None
+    # The equal-axis components scaled by a power of two (exact, subnormals included) so that
+    # their norm and direction keep every bit.
+    shift = -math.frexp(max(y[i] for i in equal))[1]
+    scaled = [math.ldexp(y[i], shift) for i in equal]
+    norm = math.hypot(*scaled)
+    root = math.sqrt(discr)
+    u = math.ldexp(norm, -shift) / e_min / root  # may underflow: only compared
+    # Exact when u + (r_i - 1) rounds to r_i - 1; and then q - x leaves the normal by u |x_equal|
+    # at most (below 2^-54 e_min): u must be under 2^-54 of both. A sphere: always exact.
+    if gap != math.inf and not u < math.ldexp(min(gap, 1.0), -54):
+        return None
+    for i, ys in zip(equal, scaled, strict=True):
+        x[i] = e_min * root * (ys / norm)
+    return x
+
+
 def _ellipse(e0: float, e1: float, y0: float, y1: float) -> tuple[float, float]:
     """Closest point for ``e0 >= e1 > 0`` and ``y0, y1 >= 0``."""
     if y1 > 0:
@@ -66,6 +116,9 @@ def _ellipse(e0: float, e1: float, y0: float, y1: float) -> tuple[float, float]:
             g = z0 * z0 + z1 * z1 - 1.0
             if g == 0:
                 return y0, y1
+            closed = _negligible_root((e0, e1), (y0, y1))
+            if closed is not None:
+                return closed[0], closed[1]
             r0 = (e0 / e1) ** 2
             r0m1 = (e0 - e1) * (e0 + e1) / (e1 * e1)  # r0 - 1 without cancellation
             u = _root_2d(r0m1, r0 * z0, z1, g)
@@ -90,6 +143,9 @@ def _ellipsoid_sorted(e: FloatArray, y: FloatArray) -> FloatArray:
                 g = z0 * z0 + z1 * z1 + z2 * z2 - 1.0
                 if g == 0:
                     return np.array([y0, y1, y2])
+                closed = _negligible_root((e0, e1, e2), (y0, y1, y2))
+                if closed is not None:
+                    return np.array(closed)
                 r0, r1 = (e0 / e2) ** 2, (e1 / e2) ** 2
                 r0m1 = (e0 - e2) * (e0 + e2) / (e2 * e2)
                 r1m1 = (e1 - e2) * (e1 + e2) / (e2 * e2)
