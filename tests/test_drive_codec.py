@@ -6,10 +6,12 @@ from __future__ import annotations
 import doctest
 import importlib
 import math
+import sys
 from pathlib import Path
 
 import cantools
 import pytest
+from hapticloud.core.errors import ConfigError
 from hapticloud.hardware.drives import codec, schedule
 from hapticloud.hardware.drives import protocol as p
 from hapticloud.hardware.drives.config import DriveBusConfig
@@ -99,6 +101,75 @@ def test_scaling_saturates_instead_of_wrapping() -> None:
     fb = codec.decode_feedback(codec.encode_feedback(0.0, 1e3, -1e3, 0, 0, 0))
     assert fb.velocity_rad_s == pytest.approx(p.VELOCITY_RANGE_RAD_S)
     assert fb.torque_nm == pytest.approx(p.INT16_MIN * LSB_T)
+
+
+_EXTREMES = (
+    math.inf,
+    -math.inf,
+    math.nan,
+    1e308,
+    -1e308,
+    sys.float_info.max,
+    -sys.float_info.max,
+    1e306,
+    9e305,
+    5e-324,
+    -0.0,
+)
+
+
+def test_torque_limit_saturates_at_every_float() -> None:
+    """A limit beyond the uint16 field (inf, 1e308: their count overflows a float) is the
+    largest count; NaN and limits <= 0 are 0, the safe limit (the drive then clamps every
+    target to zero torque). The configuration refuses such limits before they get here."""
+    assert codec.torque_limit_to_raw(math.inf) == p.UINT16_MAX
+    assert codec.torque_limit_to_raw(1e308) == p.UINT16_MAX
+    assert codec.torque_limit_to_raw(sys.float_info.max) == p.UINT16_MAX
+    assert codec.torque_limit_to_raw(-math.inf) == 0
+    assert codec.torque_limit_to_raw(-1e308) == 0
+    assert codec.torque_limit_to_raw(math.nan) == 0
+    assert codec.torque_limit_to_raw(5e-324) == 0  # rounded down
+    assert codec.torque_limit_to_raw(p.UINT16_MAX * LSB_T) == p.UINT16_MAX
+    for bad in (math.inf, math.nan):
+        with pytest.raises(ConfigError, match="finite"):
+            DriveBusConfig(tau_max_nm=(bad,) * p.N_DRIVES)
+    # The torque field too: saturated at its range, NaN is 0, never a full-scale command.
+    expected = (p.INT16_MAX, p.INT16_MIN, 0, p.INT16_MAX, p.INT16_MIN, p.INT16_MAX)
+    expected += (p.INT16_MIN, p.INT16_MAX, p.INT16_MAX, 0, 0)
+    assert tuple(codec.torque_to_raw(v) for v in _EXTREMES) == expected
+    frame = codec.decode_command(codec.encode_command(7, (0,) * 6, _EXTREMES[:6], _EXTREMES[:6]))
+    assert frame.torque_nm == pytest.approx(
+        [
+            p.TORQUE_RANGE_NM,
+            p.INT16_MIN * LSB_T,
+            0.0,
+            p.TORQUE_RANGE_NM,
+            p.INT16_MIN * LSB_T,
+            p.TORQUE_RANGE_NM,
+        ]
+    )
+    assert frame.torque_limit_nm == pytest.approx(
+        [p.UINT16_MAX * LSB_T, 0.0, 0.0, p.UINT16_MAX * LSB_T, 0.0, p.UINT16_MAX * LSB_T]
+    )
+
+
+@given(
+    tau=six(st.floats(), min_size=6, max_size=6),
+    lim=six(st.floats(), min_size=6, max_size=6),
+)
+def test_command_encoding_never_raises_on_any_float(tau, lim) -> None:
+    """Any doubles (NaN, inf, subnormal, +-1e308) pack: counts in range, NaN as 0."""
+    frame = codec.decode_command(codec.encode_command(1, (0,) * 6, tau, lim))
+    for sent, got in zip(tau, frame.torque_nm, strict=True):
+        assert p.INT16_MIN * LSB_T <= got <= p.TORQUE_RANGE_NM
+        if sent != sent:
+            assert got == 0.0
+    for sent, got in zip(lim, frame.torque_limit_nm, strict=True):
+        assert 0.0 <= got <= p.UINT16_MAX * LSB_T
+        if not sent > 0.0:
+            assert got == 0.0
+        else:
+            assert got <= sent + 1e-9  # never a larger limit than asked for
 
 
 def test_scaling_covers_the_drive_limits_with_margin() -> None:

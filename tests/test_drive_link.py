@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 
 import can
 import numpy as np
@@ -197,6 +198,37 @@ def test_torque_is_zero_before_enable_and_clamped_after() -> None:
         assert c.torques_nonfinite == 4 and c.torques_clamped == 6
         # The drives apply what was sent.
         np.testing.assert_allclose(rig.emu.state().tau_nm, sent)
+
+
+def test_torques_beyond_any_float_range_saturate_and_never_raise() -> None:
+    """Above ~9e305 N m a torque's count overflows a float (round(inf) raised OverflowError on
+    the hot path): such torques are clamped to the limit like any other too large one; NaN and
+    +-inf are 0 (non-finite, as documented); nothing raises."""
+    with Rig(sniff=True) as rig:
+        rig.enable()
+        rig.sniffed()
+        counters = rig.link.counters
+        huge = np.array([1e308, -1e308, sys.float_info.max, 1e306, -9e305, math.nan])
+        _, sent = rig.cycle(huge)
+        np.testing.assert_allclose(sent, [80.0, -80.0, 80.0, 80.0, -40.0, 0.0])
+        _, sent = rig.cycle(
+            np.array([math.inf, -math.inf, math.nan, -sys.float_info.max, 5e-324, -0.0])
+        )
+        np.testing.assert_allclose(sent, [0.0, 0.0, 0.0, -80.0, 0.0, 0.0])
+        cmds = _commands(rig.sniffed())
+        np.testing.assert_allclose(cmds[-2].torque_nm, [80.0, -80.0, 80.0, 80.0, -40.0, 0.0])
+        np.testing.assert_allclose(cmds[-1].torque_nm, [0.0, 0.0, 0.0, -80.0, 0.0, 0.0])
+        c = rig.link.counters
+        assert c.torques_clamped - counters.torques_clamped == 6
+        assert c.torques_nonfinite - counters.torques_nonfinite == 4
+        # The same through send_cycle (command and SYNC in one burst).
+        sent = rig.link.send_cycle(huge, rig.link.controlwords(DriveTarget.ENABLED))
+        np.testing.assert_allclose(sent, [80.0, -80.0, 80.0, 80.0, -40.0, 0.0])
+        # A NaN limit is refused where limits are set (a limit of 0 is the safe one).
+        with pytest.raises(InputError, match="limits_nm"):
+            rig.link.set_torque_limits([math.nan] * 6)
+        rig.link.set_torque_limits(math.inf)  # cut to the configured limits
+        np.testing.assert_allclose(rig.link.torque_limits, rig.cfg.tau_max)
 
 
 def test_run_time_torque_limits_only_go_down() -> None:

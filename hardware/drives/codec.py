@@ -58,10 +58,18 @@ def torque_to_raw(torque_nm: float) -> int:
 
 
 def torque_limit_to_raw(limit_nm: float) -> int:
-    """Torque limit (N m, >= 0) to uint16 counts, rounded down so the limit never grows."""
+    """Torque limit (N m, >= 0) to uint16 counts, rounded down so the limit never grows.
+
+    Saturating: a limit beyond the field (``inf``, or so large that its count overflows a float)
+    is the largest count. NaN and limits <= 0 are 0, the safe limit (the drive clamps every target
+    to zero torque); :class:`~.config.DriveBusConfig` refuses non-finite limits in the first place.
+    """
     if not limit_nm > 0.0:  # also NaN
         return 0
-    return min(p.UINT16_MAX, math.floor(limit_nm * _TORQUE_SCALE + 1e-9))
+    x = limit_nm * _TORQUE_SCALE + 1e-9
+    if x >= p.UINT16_MAX:  # before floor(): floor(inf) raises
+        return p.UINT16_MAX
+    return math.floor(x)
 
 
 def position_to_raw(position_rad: float) -> int:

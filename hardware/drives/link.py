@@ -49,6 +49,9 @@ _FEEDBACK, _HEARTBEAT, _EMCY = 1, 2, 3
 _MAX_FRAMES_PER_POLL = 512
 _ENABLE_MASK = 0x8F
 _FAULT_BIT = int(p.Statusword.FAULT)  # bits that make up the "enable operation" command
+#: Torque counts at or beyond this are clamped without rounding: a torque above ~9e305 N m has an
+#: infinite count, and ``round(inf)`` raises. Any limit in counts (int16) is far below it.
+_SATURATED_COUNT = float(1 << 20)
 
 
 class LinkCounters(NamedTuple):
@@ -604,7 +607,11 @@ class DriveLink:
                     c["torques_blocked"] += 1
                 continue
             lim = self._limit_raw[i]
-            r = round(t / p.TORQUE_LSB_NM)
+            x = t / p.TORQUE_LSB_NM
+            if -_SATURATED_COUNT < x < _SATURATED_COUNT:
+                r = round(x)
+            else:  # clamped just below
+                r = lim + 1 if x > 0.0 else -lim - 1
             if r > lim:
                 r = lim
                 c["torques_clamped"] += 1
