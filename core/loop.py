@@ -453,20 +453,20 @@ class HapticLoop:
         self.last_fused = fused
         fused_ok = fused is not None and fused.valid
         primary, hold_q, space = None, None, SpaceState.KNOWN
-        unknown_cfg = self.config.unknown
-        stale = fused_ok and fused.age_s > unknown_cfg.fresh_s
         self._cap = self.approach_limit_mps
+        unknown_cfg = self.config.unknown
         if perceived:
-            known = None
-            if fused_ok and not stale:
+            known, age = None, 0.0
+            if fused_ok:
                 centroid, normal, velocity = fused.centroid, fused.normal, fused.velocity
                 if type(fused) is not FusedSurface:  # the fusion's own are float arrays already
                     centroid, normal = _float_array(centroid), _float_array(normal)
                     velocity = _float_array(velocity)
                 known = SurfacePoint(centroid, normal, velocity, self.fused_region)
+                age = fused.age_s
             why, free = "no fused surface", False
             if fused is not None and known is None:
-                why = f"newest estimate {fused.age_s * 1e3:.0f} ms old" if stale else fused.reason
+                why = fused.reason
                 free = free_proof_holds(
                     getattr(fused, "free_m", 0.0),
                     getattr(fused, "free_hip", None),
@@ -474,7 +474,7 @@ class HapticLoop:
                     hip.radius_m,
                     unknown_cfg,
                 )
-            decision = self.guard.step(t, known, robot.q, why, free)
+            decision = self.guard.step(t, known, robot.q, why, free, age)
             primary, hold_q, space = decision.surface, decision.hold_q, decision.state
             cap = decision.approach_limit_mps
             if cap is not None and (self._cap is None or cap < self._cap):

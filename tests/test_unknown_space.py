@@ -38,16 +38,18 @@ def test_nothing_known_yet_stops_at_once() -> None:
 
 
 def test_known_then_held_grown_then_stopped_then_known_again() -> None:
-    cfg = UnknownSpaceConfig(stop_after_s=0.3, growth_m_s=0.1, speed_factor=0.5, approach_m_s=0.04)
+    cfg = UnknownSpaceConfig(
+        fresh_s=0.05, stop_after_s=0.3, growth_m_s=0.1, speed_factor=0.5, approach_m_s=0.04
+    )
     guard = SurfaceGuard(cfg)
     live = guard.step(0.0, _surface(0.0, 0.2), Q)
     assert live.state is SpaceState.KNOWN and live.approach_limit_mps is None
     held = guard.step(0.1, None, Q, "stale")
     assert held.state is SpaceState.HOLDING and held.hold_q is None
     assert held.approach_limit_mps == 0.04
-    # Moved on with its last velocity (0.2 m/s) and grown by 0.1 * (0.1 + 0.5 * 0.2) m.
+    # Moved on with its last velocity (0.2 m/s) and grown by (0.1 - 0.05) * (0.1 + 0.5 * 0.2) m.
     assert held.surface is not None
-    assert held.surface.centroid[2] == pytest.approx(0.1 * 0.2 + 0.1 * (0.1 + 0.5 * 0.2))
+    assert held.surface.centroid[2] == pytest.approx(0.1 * 0.2 + 0.05 * (0.1 + 0.5 * 0.2))
     assert held.surface.velocity[2] == pytest.approx(0.2 + 0.1 + 0.5 * 0.2)
     assert guard.step(0.29, None, Q, "stale").state is SpaceState.HOLDING
     q_stop = np.full(6, 0.3)
@@ -66,7 +68,20 @@ def test_known_then_held_grown_then_stopped_then_known_again() -> None:
         SpaceState.STOPPED,
         SpaceState.KNOWN,
     ]
-    assert guard.transitions[2].reason.startswith("stale; unknown for 0.300 s")
+    assert guard.transitions[2].reason.startswith("stale; newest estimate 0.300 s old")
+
+
+def test_an_old_surface_is_held_grown_by_its_age_and_stops_by_its_age() -> None:
+    cfg = UnknownSpaceConfig(fresh_s=0.1, stop_after_s=0.3, growth_m_s=0.2, speed_factor=0.0)
+    guard = SurfaceGuard(cfg)
+    assert guard.step(0.0, _surface(), Q, age_s=0.1).state is SpaceState.KNOWN
+    old = guard.step(0.01, _surface(), Q, age_s=0.16)
+    assert old.state is SpaceState.HOLDING and old.approach_limit_mps == cfg.approach_m_s
+    assert old.surface is not None and old.surface.centroid[2] == pytest.approx(0.06 * 0.2)
+    assert guard.reason == "newest estimate 160 ms old"
+    # The estimate's age, not the time since the last tick with a surface, decides the stop.
+    assert guard.step(0.12, None, Q, "stale").state is SpaceState.HOLDING  # 0.27 s
+    assert guard.step(0.15, None, Q, "stale").state is SpaceState.STOPPED  # 0.30 s
 
 
 def test_free_proof_counts_only_while_the_hip_stays_inside_it() -> None:
@@ -103,21 +118,35 @@ def test_hold_acceleration_pulls_back_and_damps() -> None:
         max_size=40,
     ),
     stop_after=st.floats(0.0, 1.0),
+    fresh=st.floats(0.0, 0.5),
+    age=st.floats(0.0, 0.5),
 )
-def test_guard_properties(steps: list[tuple[float, bool, float, float]], stop_after: float) -> None:
-    """Never KNOWN without a surface; the held surface is never farther from the HIP than the
-    last one moved on; STOPPED exactly once unknown for ``stop_after_s``; nothing NaN."""
-    guard = SurfaceGuard(UnknownSpaceConfig(stop_after_s=stop_after))
-    t, last, last_t = 0.0, None, None
-    for dt, valid, z, vz in steps:
+def test_guard_properties(
+    steps: list[tuple[float, bool, float, float]], stop_after: float, fresh: float, age: float
+) -> None:
+    """KNOWN only with a fresh surface; the held surface is never farther from the HIP than the
+    last one moved on; STOPPED exactly once the newest estimate is ``stop_after_s`` old; no
+    NaN."""
+    guard = SurfaceGuard(UnknownSpaceConfig(stop_after_s=stop_after, fresh_s=fresh))
+    t, last, last_t, held_q = 0.0, None, None, None
+    for k, (dt, valid, z, vz) in enumerate(steps):
         t += dt
-        d = guard.step(t, _surface(z, vz) if valid else None, Q, "lost")
+        q = np.full(6, float(k))  # the arm drifts: the hold must keep where it stopped
+        d = guard.step(t, _surface(z, vz) if valid else None, q, "lost", age_s=age)
+        if d.state is SpaceState.STOPPED:
+            assert d.hold_q is not None
+            if held_q is not None:
+                assert np.array_equal(d.hold_q, held_q)
+            held_q = d.hold_q
+        else:
+            held_q = None
         if valid:
             last, last_t = _surface(z, vz), t
-            assert d.state is SpaceState.KNOWN and d.surface is not None
-            continue
+            if age <= fresh:
+                assert d.state is SpaceState.KNOWN and d.surface is not None
+                continue
         assert d.state is not SpaceState.KNOWN
-        if last is None or t - last_t >= stop_after:
+        if last is None or (t - last_t) + age >= stop_after:
             assert d.state is SpaceState.STOPPED and d.hold_q is not None
         else:
             assert d.state is SpaceState.HOLDING and d.surface is not None
@@ -200,7 +229,7 @@ def test_an_unsafe_run_exits_with_its_own_code() -> None:
     assert done.stdout.strip().splitlines()[-1].startswith("UNSAFE: min margin")
 
 
-def test_bench_safety_prints_the_table_and_its_verdicts(tmp_path) -> None:  # noqa: ANN001
+def test_bench_safety_prints_the_table_and_its_verdicts(tmp_path) -> None:
     out = tmp_path / "cells.json"
     cmd = [
         sys.executable,

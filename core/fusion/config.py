@@ -86,7 +86,11 @@ class FusionConfig(StageConfig):
         doc="extrapolate at most this far past the newest; then hold",
     )
     max_age_s: float = param(
-        0.15, lo=0.005, hi=5.0, unit="s", doc="no valid estimate for this long: stale, invalid"
+        0.3,
+        lo=0.005,
+        hi=5.0,
+        unit="s",
+        doc="no valid estimate for this long: stale, invalid (the tick holds, grown, from 0.1 s)",
     )
     max_samples: int = param(
         256, lo=4, hi=4096, gui=False, doc="cap on estimates kept in the window (oldest dropped)"

@@ -1,18 +1,19 @@
 """What cannot be seen is not free space: the surface guard of the haptic tick.
 
-The fused surface is the tick's only knowledge of the patient. When it is valid the constraints act
-on it (``KNOWN``); a camera's fresh proof that its whole workspace is empty (see
-:func:`free_proof_holds`) is knowledge too: ``KNOWN`` with no surface. Otherwise (no estimate yet,
-an invalid or stale one, a watchdog that distrusts the cameras) the space around the HIP is
-*unknown*, and unknown is treated as near:
+The fused surface is the tick's only knowledge of the patient. When it is valid and its newest
+estimate at most ``fresh_s`` old, the constraints act on it (``KNOWN``); a camera's fresh proof
+that its whole workspace is empty (see :func:`free_proof_holds`) is knowledge too: ``KNOWN`` with
+no surface. Otherwise (no estimate yet, an invalid, stale or old one, a watchdog that distrusts
+the cameras) the space around the HIP is *unknown*, and unknown is treated as near:
 
 ``HOLDING``
     the last known surface stays a hard constraint. It keeps moving with its last velocity and
-    is grown towards the HIP by a margin that grows with the time since it was last seen and with
-    its speed (``margin = age * (growth_m_s + speed_factor * |v|)``): the patient may have moved
-    toward the hand in that time. The approach speed toward it is capped at ``approach_m_s``.
+    is grown towards the HIP by a margin that grows with the age of the newest estimate beyond
+    ``fresh_s`` and with the surface's speed when last seen fresh (``margin = (age - fresh_s) *
+    (growth_m_s + speed_factor * |v|)``): the patient may have moved toward the hand, unseen.
+    The approach speed toward it is capped at ``approach_m_s``.
 ``STOPPED``
-    the space stayed unknown for ``stop_after_s``, or no surface was ever known: the robot comes
+    the newest estimate is ``stop_after_s`` old, or no surface was ever known: the robot comes
     to rest and holds the joint position where it stopped (a joint-space PD task at level 5),
     still kept out of the (frozen) held surface by level 4.
 
@@ -62,7 +63,7 @@ class UnknownSpaceConfig(StageConfig):
     _path: ClassVar[str] = "haptics.unknown"
 
     fresh_s: float = param(
-        0.075,
+        0.1,
         lo=0.0,
         hi=1.0,
         unit="s",
@@ -73,7 +74,7 @@ class UnknownSpaceConfig(StageConfig):
         lo=0.0,
         hi=5.0,
         unit="s",
-        doc="unknown for this long: stop and hold position (0: stop at once)",
+        doc="newest estimate this old (or none): stop and hold position (0: stop at once)",
     )
     approach_m_s: float = param(
         0.05, lo=0.0, hi=1.0, unit="m/s", doc="approach speed cap toward the held surface"
@@ -86,7 +87,10 @@ class UnknownSpaceConfig(StageConfig):
         doc="the held surface grows toward the HIP this fast (unseen motion of the patient)",
     )
     speed_factor: float = param(
-        0.5, lo=0.0, hi=5.0, doc="extra growth per m/s of the held surface's last speed"
+        1.0,
+        lo=0.0,
+        hi=5.0,
+        doc="extra growth per m/s of the surface's speed when last seen fresh",
     )
     hold_kp: float = param(
         400.0, lo=0.0, hi=1e5, unit="1/s²", doc="stiffness of the position hold (per joint)"
@@ -139,6 +143,10 @@ class SurfaceGuard:
         self._reason = "no surface known yet"
         self._last: SurfacePoint | None = None
         self._last_t = -math.inf
+        self._last_age = 0.0
+        # The surface's speed when last seen fresh: an old fused surface is held still by the
+        # fusion (its velocity zero past max_extrapolation_s) while the body may still move.
+        self._fresh_speed = 0.0
         self._frozen: SurfacePoint | None = None
         self._hold_q: FloatArray | None = None
         self._entered = False
@@ -162,8 +170,11 @@ class SurfaceGuard:
         return tuple(self._log)
 
     def unknown_for_s(self, t: float) -> float:
-        """Time since the surface was last known (s; 0 while known, inf if never)."""
-        return 0.0 if self._state is SpaceState.KNOWN else t - self._last_t
+        """Age of the newest estimate behind the surface (s; inf if none)."""
+        return self._age(t)
+
+    def _age(self, t: float) -> float:
+        return (t - self._last_t) + self._last_age if self._last is not None else math.inf
 
     def step(
         self,
@@ -172,52 +183,69 @@ class SurfaceGuard:
         q: FloatArray,
         reason: str = "",
         free: bool = False,
+        age_s: float = 0.0,
     ) -> GuardDecision:
-        """One tick at time ``t``: ``known`` is the valid fused surface, or ``None`` with
-        ``reason`` saying why there is none; ``free`` that the space is proven empty instead
-        (:func:`free_proof_holds`); ``q`` the measured joint positions."""
+        """One tick at time ``t``: ``known`` is the valid fused surface and ``age_s`` the age of
+        the newest estimate behind it, or ``None`` with ``reason`` saying why there is none;
+        ``free`` that the space is proven empty instead (:func:`free_proof_holds`); ``q`` the
+        measured joint positions.
+
+        A surface older than ``fresh_s`` is held (grown by its age beyond ``fresh_s``, approach
+        capped) even while the fusion still calls it valid; the stop comes when the newest
+        estimate is ``stop_after_s`` old.
+        """
+        cfg = self.config
         if known is not None:
             self._last, self._last_t = known, t
-            self._frozen, self._hold_q = None, None
-            self._enter(t, SpaceState.KNOWN, "")
-            return GuardDecision(SpaceState.KNOWN, known, None, None)
-        if free:
+            self._last_age = age_s if age_s > 0.0 else 0.0
+            self._frozen = None  # a newer surface to hold (frozen again if stopped)
+            if self._last_age <= cfg.fresh_s:
+                v = np.asarray(known.velocity, dtype=np.float64)
+                self._fresh_speed = math.sqrt(float(v.dot(v)))
+                self._hold_q = None
+                self._enter(t, SpaceState.KNOWN, "")
+                return GuardDecision(SpaceState.KNOWN, known, None, None)
+            reason = f"newest estimate {self._last_age * 1e3:.0f} ms old"
+        elif free:
             # Nothing near: no surface to hold if the proof lapses (stop at once then).
-            self._last, self._last_t = None, t
+            self._last, self._last_t, self._last_age, self._fresh_speed = None, t, 0.0, 0.0
             self._frozen, self._hold_q = None, None
             self._enter(t, SpaceState.KNOWN, "")
             return GuardDecision(SpaceState.KNOWN, None, None, None)
-        cfg = self.config
         reason = reason or "no valid surface estimate"
-        last = self._last
-        if last is None or t - self._last_t >= cfg.stop_after_s:
+        if self._last is None or self._age(t) >= cfg.stop_after_s:
             return self._stopped(t, q, reason)
+        self._hold_q = None
         self._enter(t, SpaceState.HOLDING, reason)
         return GuardDecision(SpaceState.HOLDING, self._grown(t), cfg.approach_m_s, None)
 
     def _stopped(self, t: float, q: FloatArray, reason: str) -> GuardDecision:
-        if self._state is not SpaceState.STOPPED or not self._entered:
+        if self._hold_q is None:  # the position where it stopped, kept while stopped
             self._hold_q = np.array(q, dtype=np.float64)
-            self._frozen = None if self._last is None else self._grown(t, still=True)
+        if self._frozen is None and self._last is not None:
+            self._frozen = self._grown(t, still=True)
+        if self._state is not SpaceState.STOPPED or not self._entered:
             why = (
                 f"{reason}; no surface known yet"
                 if self._last is None
-                else f"{reason}; unknown for {t - self._last_t:.3f} s"
+                else f"{reason}; newest estimate {self._age(t):.3f} s old"
             )
             self._enter(t, SpaceState.STOPPED, why)
         return GuardDecision(SpaceState.STOPPED, self._frozen, 0.0, self._hold_q)
 
     def _grown(self, t: float, still: bool = False) -> SurfacePoint:
-        """The last known surface moved with its velocity and grown toward the HIP."""
+        """The last known surface moved on with its velocity and grown toward the HIP by its
+        estimate's age beyond ``fresh_s``."""
         last = self._last
         assert last is not None
         cfg = self.config
-        age = max(0.0, t - self._last_t)
+        since = max(0.0, t - self._last_t)
+        unseen = max(0.0, self._age(t) - cfg.fresh_s)
         v = np.asarray(last.velocity, dtype=np.float64)
-        speed = math.sqrt(float(v.dot(v)))
+        speed = max(math.sqrt(float(v.dot(v))), self._fresh_speed)
         growth = cfg.growth_m_s + cfg.speed_factor * speed
         n = np.asarray(last.normal, dtype=np.float64)
-        centroid = np.asarray(last.centroid, dtype=np.float64) + age * v + (age * growth) * n
+        centroid = np.asarray(last.centroid, dtype=np.float64) + since * v + (unseen * growth) * n
         velocity = _ZERO3 if still else v + growth * n
         return SurfacePoint(centroid, n, velocity, last.body_region)
 
