@@ -32,11 +32,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import CameraIntrinsics, look_at
+from ..camera import CameraIntrinsics, DepthFrame, look_at
 from ..control import ControlStatus
 from ..errors import ConfigError
 from ..fusion import SurfaceFusion
-from ..geometry import rotation_between
+from ..geometry import Capsule, rotation_between
 from ..limits import MAX_DURATION_S
 from ..loop import HapticLoop, Wall, admit, build_controller, is_fallback
 from ..perception import CameraPipeline, SurfaceEstimate
@@ -319,6 +319,11 @@ class ClosedLoopSim:
                 cam, pipe = None, None
             self.cameras.append(SimCamera(spec, phase, cam, pipe))
         self.fusion = SurfaceFusion(cfg.fusion) if self.cameras else None
+        #: Called with ``(frame, hip, exclude, estimate)`` after each rendered camera frame is
+        #: processed (a recorder's hook; it must not change what the run computes).
+        self.frame_sink: (
+            Callable[[DepthFrame, FloatArray, list[Capsule], SurfaceEstimate], None] | None
+        ) = None
 
         # Control: the controller (fixed walls at level 3) and the tick.
         controller_cfg = scene_controller_config(scene)
@@ -460,7 +465,10 @@ class ClosedLoopSim:
         assert world is not None and cam.pipeline is not None  # cameras need bodies (loader)
         capsules = self.robot.link_capsules(q)
         frame = cam.camera.render(world, t, occluders=capsules)
-        return cam.pipeline.process_depth(frame, hip, exclude=capsules)
+        est = cam.pipeline.process_depth(frame, hip, exclude=capsules)
+        if self.frame_sink is not None:  # a recorder: what the pipeline saw and what it said
+            self.frame_sink(frame, hip, capsules, est)
+        return est
 
     def _lost(self, spec: CameraSpec, t: float) -> bool:
         """A frame that never arrives: the camera stopped, or the link dropped it (seeded)."""

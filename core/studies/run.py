@@ -66,15 +66,19 @@ def run_scene(
     overrides: Mapping[str, Any] | None = None,
     duration_s: float | None = None,
     progress: Callable[[float], None] | None = None,
+    frame_sink: Callable[..., None] | None = None,
 ) -> RunRecord:
-    """Load (if a path), build and run a scene; see :class:`ClosedLoopSim`."""
+    """Load (if a path), build and run a scene; see :class:`ClosedLoopSim` (``frame_sink``: its
+    hook for each processed camera frame, e.g. a recorder's)."""
     if not isinstance(scene, Scene):
         scene = load_scene(scene, overrides)
     elif overrides:
         scene = scene.with_overrides(overrides)
     if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0.0):
         raise ConfigError(f"--duration = {duration_s}: must be a positive number of seconds")
-    return ClosedLoopSim(scene).run(duration_s, progress)
+    sim = ClosedLoopSim(scene)
+    sim.frame_sink = frame_sink
+    return sim.run(duration_s, progress)
 
 
 def parse_sweep(text: str) -> tuple[str, list[Any]]:

@@ -67,8 +67,11 @@ __all__ = [
     "FAULT_METHODS",
     "STATE_CODES",
     "ControlProcess",
+    "ESTIMATE_WIRE_FIELDS",
     "ControlSnapshot",
+    "estimate_from_dict",
     "estimate_from_wire",
+    "estimate_to_dict",
     "estimate_to_wire",
     "send_camera_frame",
     "send_estimate",
@@ -221,6 +224,36 @@ def estimate_from_wire(wire: tuple[Any, ...]) -> Any:
         free_m=free_m,
         hip=None if hip is None else np.array(hip),
     )
+
+
+#: The names of :func:`estimate_to_wire`'s fields, in order: the same information as a dict
+#: (the recordings' estimate channel, JSON), so that there is one estimate encoding.
+ESTIMATE_WIRE_FIELDS = (
+    "t",
+    "camera",
+    "centroid",
+    "normal",
+    "valid",
+    "quality",
+    "reason",
+    "method",
+    "seq",
+    "free_m",
+    "hip",
+)
+
+
+def estimate_to_dict(est: Any) -> dict[str, Any]:
+    """:func:`estimate_to_wire` with its fields named (JSON-ready: tuples become lists)."""
+    return {
+        name: list(value) if isinstance(value, tuple) else value
+        for name, value in zip(ESTIMATE_WIRE_FIELDS, estimate_to_wire(est), strict=True)
+    }
+
+
+def estimate_from_dict(data: Mapping[str, Any]) -> Any:
+    """The estimate of :func:`estimate_to_dict`'s dict (``KeyError`` naming a missing field)."""
+    return estimate_from_wire(tuple(data[name] for name in ESTIMATE_WIRE_FIELDS))
 
 
 def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: Any) -> None:
