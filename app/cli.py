@@ -23,7 +23,7 @@ from hapticloud.core.errors import ConfigError, HapticloudError  # noqa: E402
 
 EXIT_BAD_INPUT = 2
 # Registration order is the order --help lists them.
-COMMANDS = ("app", "demo", "run", "bench")
+COMMANDS = ("app", "demo", "run", "replay", "info", "recover", "import", "bench")
 DEFAULT_COMMAND = ["app"]
 
 

@@ -35,13 +35,40 @@ def run_text_demo(
     overrides: Mapping[str, Any] | None = None,
     realtime: bool = True,
     out: TextIO | None = None,
+    record: str | None = None,
 ) -> int:
-    """Print the demo's estimates against ground truth; returns the exit code."""
+    """Print the demo's estimates against ground truth; returns the exit code. ``record``: also
+    record the frames and estimates to this ``.mcap`` file."""
+    if record is not None:
+        from hapticloud.core.studies.perception import perception_config
+        from hapticloud.hardware.recording.runs import (
+            demo_recorder,
+            frame_hook,
+            recording_summary,
+        )
+
+        recorder = demo_recorder(record, perception_config(overrides))
+        try:
+            code = _run(duration_s, overrides, realtime, out, frame_hook(recorder.sink))
+        finally:
+            result = recorder.close()
+        print(recording_summary(result), file=out, flush=True)
+        return code
+    return _run(duration_s, overrides, realtime, out, None)
+
+
+def _run(
+    duration_s: float,
+    overrides: Mapping[str, Any] | None,
+    realtime: bool,
+    out: TextIO | None,
+    frame_sink: Any,
+) -> int:
     print(HEADER, file=out, flush=True)
     start = time.monotonic()
     errors = []
     judged: list[tuple[float, float, float]] = []
-    for frame in demo_frames(duration_s, overrides):
+    for frame in demo_frames(duration_s, overrides, frame_sink=frame_sink):
         if realtime:
             delay = start + frame.t - time.monotonic()
             if delay > 0:

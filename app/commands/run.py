@@ -58,6 +58,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "process against six emulated CAN FD drives moving the scene's exoskeleton and patient, "
         "perception outside the loop (not with --sweep or --plot)",
     )
+    parser.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record the run (camera frames, estimates, the tick's state, events) to this MCAP "
+        "file; 'hapticloud info' and 'hapticloud replay' read it, Foxglove opens it "
+        "(not with --sweep)",
+    )
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_set_option(parser, "surface.speed_mps=2.0")
     parser.set_defaults(handler=run)
@@ -81,7 +88,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--compare-paper: needs --sweep (for one run: --sweep KEY=VALUE)")
     if args.hardware and (args.sweep or args.plot):
         raise ConfigError("--hardware: not with --sweep or --plot")
-    check_outputs(files={"--report": args.report}, folders={"--plot": args.plot})
+    if args.record and args.sweep:
+        raise ConfigError("--record: not with --sweep (one recording per run)")
+    check_outputs(
+        files={"--report": args.report, "--record": args.record}, folders={"--plot": args.plot}
+    )
     scene = load_scene(args.scene, overrides(args.set))
     if args.hardware:
         return _run_hardware(args, scene, say)
@@ -118,7 +129,9 @@ def run(args: argparse.Namespace) -> int:
             return _verdict_exit(
                 args, [r["verdict_line"] for r in ours], [r["verdict"] for r in ours]
             )
-        record = study.run_scene(scene, None, args.duration)
+        record = _run_recorded(args, scene, say) if args.record else None
+        if record is None:
+            record = study.run_scene(scene, None, args.duration)
     except InfeasibleSceneError as err:
         return _infeasible(args, scene, err)
     rep = study.report(record)
@@ -160,7 +173,9 @@ def _run_hardware(args: argparse.Namespace, scene: Any, say: Any) -> int:
     from hapticloud.hardware.session.run import run_session, summary_lines
 
     try:
-        rep = run_session(args.scene, overrides(args.set), args.duration, progress=say)
+        rep = run_session(
+            args.scene, overrides(args.set), args.duration, progress=say, record=args.record
+        )
     except InfeasibleSceneError as err:
         return _infeasible(args, scene, err)
     except (RuntimeError, TimeoutError) as err:
@@ -172,6 +187,26 @@ def _run_hardware(args: argparse.Namespace, scene: Any, say: Any) -> int:
         _write_json(args.report, rep)
         say(f"wrote {args.report}")
     return _verdict_exit(args, [rep["truth"]["line"]], [rep["verdict"]])
+
+
+def _run_recorded(args: argparse.Namespace, scene: Any, say: Any) -> Any:
+    """The deterministic run with the recorder on its frame hook (the run computes the same)."""
+    from hapticloud.core.studies import run as study
+    from hapticloud.hardware.recording.runs import (
+        frame_hook,
+        record_ticks,
+        recording_summary,
+        scene_recorder,
+    )
+
+    recorder = scene_recorder(args.record, scene, "run", "scene")
+    try:
+        record = study.run_scene(scene, None, args.duration, frame_sink=frame_hook(recorder.sink))
+        record_ticks(recorder.sink, record)
+    finally:
+        result = recorder.close()
+    say(recording_summary(result))
+    return record
 
 
 def _plot_single(record: Any, out: Path, say: Any, suffix: str = "") -> None:

@@ -15,7 +15,7 @@ from .frames import (
     primitive_to_dict,
     storage_roi,
 )
-from .replay import ReplayResult, ReplayRow, replay
+from .replay import ReplayResult, ReplayRow, replay, replay_configs
 
 __all__ = [
     "CapturedFrame",
@@ -26,5 +26,6 @@ __all__ = [
     "primitive_from_dict",
     "primitive_to_dict",
     "replay",
+    "replay_configs",
     "storage_roi",
 ]

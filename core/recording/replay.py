@@ -13,12 +13,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tomllib
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import ConfigError
 from ..fusion import FusionConfig, SurfaceFusion
 from ..perception import CameraPipeline, PerceptionConfig, SurfaceEstimate
 from .frames import CapturedFrame, roi_covers
@@ -169,4 +172,61 @@ def _fuse(fusion: SurfaceFusion, est: SurfaceEstimate, t: float) -> FloatArray |
     return np.array(surface.centroid) if surface.valid else None
 
 
-__all__ = ["ReplayResult", "ReplayRow", "replay"]
+def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _tail(text: str) -> str:
+    """What a config error says after the field it names (``"x.y = 1: must be ..."``)."""
+    return text.split(": ", 1)[1] if ": " in text else text
+
+
+def replay_configs(
+    recorded: Mapping[str, str],
+    preset: Mapping[str, Any] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> tuple[PerceptionConfig, FusionConfig]:
+    """The re-run's parameters: the recording's (``perception``/``fusion`` TOML texts), then a
+    preset's ``[perception]``/``[fusion]`` tables, then ``--set`` overrides
+    (``perception.voxel.voxel_size_m = 0.004``). ``ConfigError`` names what is wrong."""
+    tables: dict[str, dict[str, Any]] = {}
+    for name in ("perception", "fusion"):
+        try:
+            tables[name] = tomllib.loads(recorded.get(name, ""))
+        except tomllib.TOMLDecodeError as err:
+            raise ConfigError(f"recorded {name} parameters: not valid TOML ({err})") from None
+    for name, table in (preset or {}).items():
+        if name not in tables:
+            raise ConfigError(
+                f"--preset [{name}]: replay re-runs perception and fusion only "
+                "(tables [perception] and [fusion])"
+            )
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"--preset {name}: expected a table")
+        tables[name] = _merge(tables[name], table)
+    perception = PerceptionConfig.from_dict(tables["perception"], where="perception")
+    fusion = FusionConfig.from_dict(tables["fusion"], where="fusion")
+    for key, value in (overrides or {}).items():
+        head, _, rest = key.partition(".")
+        try:
+            if head == "perception" and rest:
+                perception = perception.replace_path(rest, value)
+                continue
+            if head == "fusion" and rest:
+                fusion = fusion.replace_path(rest, value)
+                continue
+        except ConfigError as err:
+            raise ConfigError(f"--set {key} = {value!r}: {_tail(str(err))}") from None
+        raise ConfigError(
+            f"--set {key}: replay re-runs perception and fusion only (perception.* or fusion.*)"
+        )
+    return perception, fusion
+
+
+__all__ = ["ReplayResult", "ReplayRow", "replay", "replay_configs"]

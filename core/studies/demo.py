@@ -9,7 +9,7 @@ until the app shows it.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,9 +49,13 @@ def hip_at(t: float) -> np.ndarray:
 
 
 def demo_frames(
-    duration_s: float, overrides: Mapping[str, Any] | None = None, scene: SimScene | None = None
+    duration_s: float,
+    overrides: Mapping[str, Any] | None = None,
+    scene: SimScene | None = None,
+    frame_sink: Callable[..., None] | None = None,
 ) -> Iterator[DemoFrame]:
-    """Yield every camera frame of ``duration_s`` seconds of the demo, in time order."""
+    """Yield every camera frame of ``duration_s`` seconds of the demo, in time order
+    (``frame_sink``: called with ``(frame, hip, exclude, estimate)`` of each, e.g. a recorder)."""
     scene = demo_scene() if scene is None else scene
     config = perception_config(overrides)
     pipes = {cam.name: CameraPipeline(config, camera=cam.name) for cam in scene.cameras}
@@ -65,6 +69,8 @@ def demo_frames(
             occluders = end_effector(hip, np.asarray(DEMO_HANDLE_DIRECTION))
             frame = camera.render(scene.world, t, occluders=occluders)
             est = pipes[camera.name].process_depth(frame, hip, exclude=occluders)
+            if frame_sink is not None:
+                frame_sink(frame, hip, occluders, est)
             truth = scene.world.ground_truth(hip, t)
             d_true = truth.distance_m - R_HIP_M
             if est.valid:

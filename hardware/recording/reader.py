@@ -166,9 +166,16 @@ class Recording:
             raise RecordingError(
                 f"{self.path}: truncated before its first chunk ({self.truncation})"
             )
+        # Schemas and channels are written inside the chunk that first uses them.
         for chunk in self._chunks:
-            for rec in _messages_of(chunk):
-                self._counts[rec.channel_id] = self._counts.get(rec.channel_id, 0) + 1
+            records = [chunk._single] if hasattr(chunk, "_single") else breakup_chunk(chunk)
+            for rec in records:
+                if isinstance(rec, Message):
+                    self._counts[rec.channel_id] = self._counts.get(rec.channel_id, 0) + 1
+                elif isinstance(rec, Schema):
+                    self._schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    self._channels[rec.id] = rec
         self._start_ns = min(starts) if starts else 0
         self._end_ns = max(ends) if ends else 0
 

@@ -48,6 +48,22 @@ def scene_recorder(
     return recorder
 
 
+def demo_recorder(path: str, perception: Any, limit_bytes: int | None = None) -> Recorder:
+    """A started :class:`Recorder` for ``hapticloud demo`` (no scene file: its parameters only)."""
+    from hapticloud.core.fusion import FusionConfig
+
+    recorder = Recorder(
+        path,
+        {"source": "demo", "clock": "scene", "scene": "demo"},
+        config_tomls(perception, FusionConfig()),
+        None,
+        crop=perception.crop,
+        limit_bytes=limit_bytes,
+    )
+    recorder.wait_ready()
+    return recorder
+
+
 def frame_hook(sink: RecordSink) -> Any:
     """The simulator's ``frame_sink``: each processed frame, on the scene clock."""
 
@@ -129,6 +145,7 @@ def recording_summary(result: Mapping[str, Any]) -> str:
 
 __all__ = [
     "CONTROL_EVERY_TICKS",
+    "demo_recorder",
     "frame_hook",
     "record_snapshots",
     "record_ticks",

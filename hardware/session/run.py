@@ -108,10 +108,13 @@ def _perception(
     block_name: str,
     n_joints: int,
     est_conn: Any,
+    record_sink: Any,
     conn: Any,
 ) -> None:
     """The scene's cameras against the live robot state until told to stop (see the module
-    docstring); answers ``("result", stats)``."""
+    docstring); answers ``("result", stats)``. ``record_sink``: a recorder's
+    :class:`~hapticloud.hardware.recording.recorder.RecordSink` (each frame, its HIP and robot
+    shapes and the estimate sent), or ``None``."""
     from hapticloud.core.loop import admit
     from hapticloud.core.scene import load_scene
     from hapticloud.core.sim.closed_loop import ClosedLoopSim
@@ -123,6 +126,9 @@ def _perception(
     settle_numerics(1)
     sim = ClosedLoopSim(load_scene(scene, overrides))
     cams = sim.cameras
+    seen: list[Any] = []  # the frame hook's last (frame, hip, exclude, estimate)
+    if record_sink is not None:
+        sim.frame_sink = lambda *frame: seen.append(frame)
     block = RobotStateBlock.attach(block_name, n_joints)
     conn.send(("ready", [c.spec.name for c in cams]))
     msg = conn.recv()
@@ -167,6 +173,9 @@ def _perception(
                 est = sim._capture(cam, max(0.0, st.t - t_origin), st.q_rad, st.hip_m)
                 perception_ms.append((time.perf_counter() - p0) * 1e3)
                 est = dataclasses.replace(est, t=st.t, seq=cam.frames)
+                if seen:  # recorded as sent: the monotonic clock, the sequence number
+                    frame, hip, exclude, _ = seen.pop()
+                    record_sink.capture(st.t, frame, hip, exclude, est)
                 cam.frames += 1
                 sent[name] += 1
                 valid[name] += bool(est.valid)
@@ -189,6 +198,7 @@ def _perception(
         (
             "result",
             {
+                "record_dropped": record_sink.dropped if record_sink is not None else 0,
                 "sent": sent,
                 "valid": valid,
                 "admitted": admitted,
@@ -204,13 +214,26 @@ class _Perception:
     """Parent's handle on the perception process."""
 
     def __init__(
-        self, scene: str, overrides: dict[str, Any] | None, cp: Any, n_joints: int
+        self,
+        scene: str,
+        overrides: dict[str, Any] | None,
+        cp: Any,
+        n_joints: int,
+        record_sink: Any = None,
     ) -> None:
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_perception_main,
-            args=(scene, overrides, cp.state_block_name, n_joints, cp.estimate_connection, child),
+            args=(
+                scene,
+                overrides,
+                cp.state_block_name,
+                n_joints,
+                cp.estimate_connection,
+                record_sink,
+                child,
+            ),
             name="hapticloud-perception",
             daemon=True,
         )
@@ -342,6 +365,8 @@ def run_session(
     fifo_priority: int | None = 80,
     plant_substeps: int | None = 1,
     progress: Callable[[str], None] | None = None,
+    record: str | None = None,
+    record_limit_bytes: int | None = None,
 ) -> dict[str, Any]:
     """Run ``scene`` in real time through the control process and the emulated drives.
 
@@ -367,6 +392,12 @@ def run_session(
         ~130 µs per cycle instead of ~500 µs.
     progress
         Called with a line of text now and then.
+    record
+        Record the session to this ``.mcap`` file (:mod:`hapticloud.hardware.recording`): the
+        perception process sends each frame and estimate, this process the loop's snapshots;
+        a recording that fails (disk full) stops with an alarm and the session goes on.
+    record_limit_bytes
+        A quota for the recording (writes past it fail as a full disk does; tests).
 
     Returns
     -------
@@ -413,6 +444,13 @@ def run_session(
         dynamics=SceneArmFactory(scene, ovr, plant_substeps),
         log_ticks=int((duration + 10.0) / PERIOD_S),
     )
+    recorder = None
+    if record is not None:
+        from ..recording.runs import scene_recorder
+
+        recorder = scene_recorder(
+            record, loaded, "run --hardware", "monotonic", limit_bytes=record_limit_bytes
+        )
     say(f"starting the control process and the emulated drives ({emulator}) ...")
     wall0 = time.monotonic()
     info = cp.start(timeout=120.0)
@@ -426,7 +464,9 @@ def run_session(
     result: dict[str, Any] | None = None
     try:
         if cams:
-            perception = _Perception(scene, ovr, cp, sim.robot.n_joints)
+            perception = _Perception(
+                scene, ovr, cp, sim.robot.n_joints, recorder.sink if recorder else None
+            )
             perception.wait_ready()
         startup_faults = waiter.ready(30.0)
         cp.enable("hapticloud run --hardware")
@@ -445,22 +485,29 @@ def run_session(
                 break
             sampler.sample()
             if now >= next_drain:
-                snaps.extend(cp.snapshots())
+                fresh = cp.snapshots()
+                snaps.extend(fresh)
+                if recorder is not None:
+                    _record(recorder, fresh, sim.hip_radius_m, say)
                 next_drain = now + 0.05
             if now >= next_report:
                 say(f"  t = {now - t_enabled:5.1f} s")
                 next_report += 1.0
             time.sleep(0.001)
-        snaps.extend(cp.snapshots())
+        fresh = cp.snapshots()
+        snaps.extend(fresh)
+        if recorder is not None:
+            _record(recorder, fresh, sim.hip_radius_m, say)
     finally:
         try:
             if perception is not None:
                 estimates = perception.stop()
         finally:
             result = cp.stop(timeout=20.0)
+            recording = recorder.close() if recorder is not None else None
     if result is None:
         raise RuntimeError(f"control process failed: {cp.error or 'no result'}")
-    return _report(
+    rep = _report(
         loaded,
         sim,
         info,
@@ -477,6 +524,21 @@ def run_session(
         STATE_CODES,
         startup_faults,
     )
+    if recording is not None:
+        recording["dropped"] += int(estimates.get("record_dropped", 0))
+        rep["recording"] = recording
+    return rep
+
+
+def _record(
+    recorder: Any, snaps: list[Any], hip_radius_m: float, say: Callable[[str], None]
+) -> None:
+    """The drained snapshots to the recorder; its alarms said (the session goes on)."""
+    from ..recording.runs import record_snapshots
+
+    record_snapshots(recorder.sink, snaps, hip_radius_m)
+    for alarm in recorder.alarms():
+        say(f"  {alarm}")
 
 
 def _report(
@@ -669,5 +731,9 @@ def summary_lines(rep: Mapping[str, Any]) -> list[str]:
         lines.append(f"reset before enable: {'; '.join(resets)}")
     if rep.get("error"):
         lines.append(f"control process error: {rep['error']}")
+    if rep.get("recording"):
+        from ..recording.runs import recording_summary
+
+        lines.append(recording_summary(rep["recording"]))
     lines.append(rep["truth"]["line"])
     return lines
