@@ -53,10 +53,12 @@ class RecordSink:
     def _put(self, item: tuple[Any, ...]) -> bool:
         try:
             if self.blocking:
-                self._q.put(item, timeout=30.0)
+                self._q.put(item, timeout=10.0)
             else:
                 self._q.put_nowait(item)
         except (queue.Full, ValueError, OSError):  # full, or the recorder is gone
+            # A recorder that took nothing for that long is gone: never wait for it again.
+            self.blocking = False
             self.dropped += 1
             return False
         self.sent += 1

@@ -62,7 +62,8 @@ class LimitedFile(io.RawIOBase):
         return self._written
 
     def flush(self) -> None:
-        self._file.flush()
+        if not self._file.closed:
+            self._file.flush()
 
     def close(self) -> None:
         if not self._file.closed:
@@ -244,8 +245,8 @@ class RecordingWriter:
         """Stop without the summary (after a write failed): the file keeps its whole chunks."""
         self.closed = True
         try:
-            self._stream.close()
-        except OSError:
+            self._stream.close()  # a buffered stream tries its last bytes once more: may fail
+        except (OSError, ValueError):
             pass
 
 
