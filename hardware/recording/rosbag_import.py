@@ -120,7 +120,8 @@ def import_bag(
             msg = reader.deserialize(raw, conn.msgtype)
             ns = _namespace(conn.topic)
             if conn.msgtype == "sensor_msgs/msg/CameraInfo":
-                k = [float(x) for x in msg.k]
+                # ROS 1 spells it K, ROS 2 k.
+                k = [float(x) for x in (msg.k if hasattr(msg, "k") else msg.K)]
                 if k[0] > 0 and k[4] > 0:
                     latest[ns] = CameraIntrinsics(
                         int(msg.width), int(msg.height), k[0], k[4], k[2], k[5]
