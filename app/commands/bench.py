@@ -116,6 +116,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     gui.add_argument("--json", action="store_true", help="print one JSON object")
     gui.set_defaults(handler=run_gui)
     _register_safety(studies)
+    _register_record(studies)
 
 
 def _register_safety(studies: argparse._SubParsersAction) -> None:
@@ -246,3 +247,34 @@ def run_safety(args: argparse.Namespace) -> int:
     from hapticloud.core.studies.verdict import UNSAFE_EXIT_CODE
 
     return UNSAFE_EXIT_CODE if unsafe else 0
+
+
+def _register_record(studies: argparse._SubParsersAction) -> None:
+    """``bench record``: the cost of recording a real-time session, and replay's speed."""
+    record = studies.add_parser(
+        "record",
+        help="control misses with and without --record, the recorder's CPU, replay speed",
+        description="Runs SCENE twice through the hardware layer (run --hardware), without and "
+        "with recording, and replays the recording: misses per 10k ticks of each, the recorder "
+        "process's share of one core, file size and rate, replay's real-time factor.",
+    )
+    record.add_argument("--scene", default="impacts", help="scene (impacts)")
+    record.add_argument("--duration", type=positive_float, default=10.0, help="seconds (10)")
+    record.add_argument("--keep", metavar="FILE.mcap", help="leave the recording here")
+    record.add_argument("--json", action="store_true", help="print one JSON object")
+    add_set_option(record, "cameras.decimation=2")
+
+    def run_record(args: argparse.Namespace) -> int:
+        import json
+
+        from hapticloud.hardware.recording.bench import bench_lines, record_bench
+
+        check_duration(args.duration)
+        check_outputs(files={"--keep": args.keep})
+        say = (lambda _t: None) if args.json else (lambda t: print(t, flush=True))
+        result = record_bench(args.scene, args.duration, overrides(args.set), args.keep, say)
+        for line in [json.dumps(result)] if args.json else bench_lines(result):
+            print(line)
+        return 0
+
+    record.set_defaults(handler=run_record)

@@ -1,0 +1,43 @@
+"""``run --hardware --record``: the perception process records each frame and estimate as sent,
+the session the loop's snapshots; replay reproduces the session's estimates; a full disk stops
+the recording with an alarm while the session runs to its end."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hapticloud.core.recording import replay, replay_configs
+from hapticloud.hardware.recording import format as fmt
+from hapticloud.hardware.recording.reader import Recording
+from hapticloud.hardware.session.run import run_session, summary_lines
+
+
+def test_a_hardware_session_records_and_replays_exactly(tmp_path: Path) -> None:
+    path = tmp_path / "hw.mcap"
+    rep = run_session("impacts", None, 1.5, record=str(path))
+    assert rep["recording"]["error"] == "" and rep["recording"]["dropped"] == 0
+    assert any(line.startswith(f"wrote {path}") for line in summary_lines(rep))
+    with Recording.open(path) as rec:
+        assert rec.finished and rec.info["clock"] == "monotonic"
+        assert rec.info["source"] == "run --hardware"
+        topics = rec.channels
+        assert topics[fmt.CONTROL_TOPIC].messages > 50
+        assert topics[fmt.EVENTS_TOPIC].messages >= 1  # at least the session's enable
+        states = [m.data["state"] for m in rec.messages([fmt.CONTROL_TOPIC])]
+        assert "enabled" in states
+        perception, fusion = replay_configs(rec.config_toml())
+        recorded = {(e.camera, e.seq): e for e in rec.estimates()}
+        result = replay(rec.frames(), recorded, perception, fusion)
+    summary = result.summary()
+    assert summary["frames"] > 20
+    assert summary["identical"] == summary["with_recorded_estimate"] == summary["frames"]
+
+
+def test_a_full_disk_stops_the_recording_not_the_session(tmp_path: Path) -> None:
+    path = tmp_path / "full.mcap"
+    rep = run_session("impacts", None, 2.5, record=str(path), record_limit_bytes=1_000_000)
+    assert rep["reached_enabled"] and rep["enabled_ticks"] > 1800  # the session went on
+    assert "No space left on device" in rep["recording"]["error"]
+    assert rep["recording"]["alarms"]
+    with Recording.open(path) as rec:
+        assert not rec.finished and rec.message_count > 0
