@@ -38,11 +38,12 @@ class PerceptionConfig(StageConfig):
         doc="coarser sampling than this (voxel or camera pixels at the HIP): estimate invalid",
     )
     max_support_gap_m: float = param(
-        0.02,
+        0.008,
         lo=0.001,
         hi=0.2,
         unit="m",
-        doc="closest point farther than this from every point it was fitted to: invalid",
+        doc="closest point farther than this (or the point spacing) from every point it was "
+        "fitted to: invalid",
     )
     min_seen_fraction: float = param(
         0.9,

@@ -185,10 +185,12 @@ class CameraPipeline:
             extra["points"] = clusters.points
             extra["filled"] = rebuilt.filled
             extra["rejected"] = clusters.rejected
-        if fit.valid and gap > cfg.max_support_gap_m:
+        # Sparser sampling leaves larger gaps between true neighbours: never below the spacing.
+        max_gap = max(cfg.max_support_gap_m, spacing)
+        if fit.valid and gap > max_gap:
             reason = (
                 f"closest point {gap * 1e3:.1f} mm from the nearest point it was fitted to "
-                f"> max_support_gap_m {cfg.max_support_gap_m * 1e3:.1f} mm"
+                f"> {max_gap * 1e3:.1f} mm (max_support_gap_m or the point spacing)"
             )
             return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
         if not fit.valid:
