@@ -17,7 +17,7 @@ from .bodies import (
 )
 from .depth_camera import RayHits, SimDepthCamera, decimated
 from .ellipsoid import closest_point_on_ellipsoid
-from .noise import DepthNoiseConfig, apply_depth_noise, frame_rng
+from .noise import DepthNoiseConfig, apply_depth_noise, frame_key
 from .scenes import (
     BenchScene,
     HipSamples,
@@ -55,7 +55,7 @@ __all__ = [
     "decimated",
     "demo_scene",
     "end_effector",
-    "frame_rng",
+    "frame_key",
     "intersect_primitive",
     "paper_cameras",
     "perception_bench_scenes",

@@ -464,7 +464,12 @@ class ClosedLoopSim:
         world = self.world.at(t)
         assert world is not None and cam.pipeline is not None  # cameras need bodies (loader)
         capsules = self.robot.link_capsules(q)
-        frame = cam.camera.render(world, t, occluders=capsules)
+        # Only the pixels the crop reads are ray-cast (the same frame there, 0 elsewhere); a
+        # recorder (frame_sink) may store more of the image than that: it gets the whole frame.
+        roi = None
+        if self.frame_sink is None:
+            roi = cam.camera.workspace_roi(hip, cam.pipeline.config.crop)
+        frame = cam.camera.render(world, t, occluders=capsules, roi=roi)
         est = cam.pipeline.process_depth(frame, hip, exclude=capsules)
         if self.frame_sink is not None:  # a recorder: what the pipeline saw and what it said
             self.frame_sink(frame, hip, capsules, est)

@@ -6,6 +6,15 @@ room are ray-cast with Open3D on cached BVHs (:class:`~hapticloud.core.sim.world
 robot's primitives, which change every frame, are intersected in closed form over the pixels their
 bounding box covers, then merged by minimum depth.
 
+A frame for the perception need not be ray-cast whole: stage A (the crop,
+:func:`~hapticloud.core.perception.crop.crop_depth_frame`) only reads the pixels of the workspace
+sphere's rectangle. :meth:`SimDepthCamera.workspace_roi` computes that rectangle with the crop's
+own :func:`~hapticloud.core.perception.crop.sphere_region` (plus a margin), and
+``render(..., roi=...)`` ray-casts only it (plus the noise model's neighbours) and returns a
+full-size frame that is 0 (invalid) outside it and bit for bit the full render inside it (the
+noise is keyed per pixel, :mod:`.noise`). Pixels left out read as invalid, never as free space:
+a ROI too small would make the crop see less, not see emptiness.
+
 Example
 -------
 >>> from hapticloud.core.camera import CameraIntrinsics, look_at
@@ -21,6 +30,7 @@ Example
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -30,14 +40,32 @@ from numpy.typing import ArrayLike, NDArray
 from ..camera import CameraIntrinsics, DepthFrame
 from ..errors import InputError
 from ..geometry.primitives import Primitive
+from ..perception.crop import CropConfig, sphere_region
 from ..validation import as_finite_scalar
-from .noise import DepthNoiseConfig, apply_depth_noise, frame_rng
-from .raygrid import RayGrid
+from .noise import NOISE_MARGIN_PX, DepthNoiseConfig, apply_depth_noise, frame_key
+from .raygrid import RayGrid, Window, intersect_windows
 from .world import MISS, OCCLUDER, SimWorld
 
-__all__ = ["MISS", "OCCLUDER", "DepthNoiseConfig", "RayHits", "SimDepthCamera", "decimated"]
+__all__ = [
+    "EMPTY_ROI",
+    "MISS",
+    "OCCLUDER",
+    "ROI_MARGIN_PX",
+    "DepthNoiseConfig",
+    "RayHits",
+    "SimDepthCamera",
+    "Window",
+    "decimated",
+]
 
 FloatArray = NDArray[np.float64]
+
+#: Pixels added on every side of the crop's rectangle by :meth:`SimDepthCamera.workspace_roi`:
+#: slack for a HIP or crop radius a rounding away from the ones the ROI was computed with (the
+#: rectangle itself already has one pixel of slack for rounding).
+ROI_MARGIN_PX = 2
+#: The empty region of interest: nothing of the workspace is in view, nothing is cast.
+EMPTY_ROI: Window = (0, 0, 0, 0)
 
 
 @dataclass(frozen=True)
@@ -189,6 +217,58 @@ class SimDepthCamera:
         uv[~(z > 1e-9)] = np.nan
         return uv, z
 
+    # ----- region of interest ----------------------------------------------------------------
+    def workspace_roi(
+        self,
+        hip: ArrayLike,
+        crop: CropConfig | None = None,
+        *,
+        margin_px: int = ROI_MARGIN_PX,
+    ) -> Window:
+        """The pixels a perception crop around ``hip`` reads, as a ``render`` ROI.
+
+        The rectangle of :func:`~hapticloud.core.perception.crop.sphere_region` (the very
+        function stage A uses) for the workspace sphere of ``crop`` (``CropConfig()`` if None:
+        radius and valid depth range) around ``hip`` (m, world), grown by ``margin_px`` on every
+        side and clipped to the image: ``(row0, row1, col0, col1)``, half-open, in the rendered
+        (decimated) image. :data:`EMPTY_ROI` when the sphere is out of view (the crop then finds
+        nothing either).
+        """
+        cfg = crop if crop is not None else CropConfig()
+        if isinstance(margin_px, bool) or not isinstance(margin_px, int) or margin_px < 0:
+            raise InputError(f"margin_px = {margin_px!r}: expected an integer >= 0")
+        k = self._k
+        # sphere_region reads only the frame's pose and intrinsics: a zero-stride depth image
+        # gives it a frame without allocating one.
+        probe = DepthFrame(
+            0.0, self._name, np.broadcast_to(np.float32(0.0), (k.height, k.width)), k, self._pose
+        )
+        found = sphere_region(probe, hip, cfg.workspace_radius_m, cfg.min_depth_m, cfg.max_depth_m)
+        if found is None:
+            return EMPTY_ROI
+        row0, row1, col0, col1 = found[:4]
+        return (
+            max(0, row0 - margin_px),
+            min(k.height, row1 + margin_px),
+            max(0, col0 - margin_px),
+            min(k.width, col1 + margin_px),
+        )
+
+    def _checked_roi(self, roi: ArrayLike) -> Window:
+        try:
+            r0, r1, c0, c1 = (operator.index(v) for v in roi)  # type: ignore[union-attr]
+        except (TypeError, ValueError):
+            raise InputError(
+                f"roi = {roi!r}: expected (row0, row1, col0, col1), four integers"
+            ) from None
+        k = self._k
+        if not (0 <= r0 <= r1 <= k.height and 0 <= c0 <= c1 <= k.width):
+            raise InputError(
+                f"roi = {roi!r}: expected 0 <= row0 <= row1 <= {k.height} and "
+                f"0 <= col0 <= col1 <= {k.width}"
+            )
+        return r0, r1, c0, c1
+
     # ----- rays --------------------------------------------------------------------------------
     def _ray_grid(self) -> RayGrid:
         if self._grid is None:
@@ -210,18 +290,31 @@ class SimDepthCamera:
         occluders: Sequence[Primitive] = (),
         *,
         incidence: bool = False,
+        roi: Window | None = None,
     ) -> RayHits:
-        """Ideal hits of every pixel at time ``t`` (s), with labels (and incidence if asked)."""
+        """Ideal hits of every pixel at time ``t`` (s), with labels (and incidence if asked).
+
+        With ``roi`` ``(row0, row1, col0, col1)`` only those pixels are cast and the arrays
+        have the ROI's shape.
+        """
         if not isinstance(world, SimWorld):
             raise InputError(f"world: expected SimWorld, got {type(world).__name__}")
         grid = self._ray_grid()
+        t = as_finite_scalar(t, "t")
+        if roi is not None:
+            roi = self._checked_roi(roi)
         depth, label, normals = world.trace(
-            grid, as_finite_scalar(t, "t"), tuple(occluders), want_normals=incidence
+            grid, t, tuple(occluders), want_normals=incidence, roi=roi
         )
         cos_inc = None
         if normals is not None:
             assert self._inv_len is not None  # set with the directions
-            cos_inc = np.abs(np.einsum("ijk,ijk->ij", normals, grid.directions)) * self._inv_len
+            r0, r1, c0, c1 = roi if roi is not None else (0, grid.shape[0], 0, grid.shape[1])
+            d = grid.directions[r0:r1, c0:c1]
+            # Component-wise, not einsum: a pixel's value must not depend on the array's extent.
+            dot = normals[..., 0] * d[..., 0] + normals[..., 1] * d[..., 1]
+            dot += normals[..., 2] * d[..., 2]
+            cos_inc = np.abs(dot) * self._inv_len[r0:r1, c0:c1]
             np.minimum(cos_inc, 1.0, out=cos_inc)
         return RayHits(depth, label, cos_inc)
 
@@ -234,16 +327,48 @@ class SimDepthCamera:
         return depth
 
     def render(
-        self, world: SimWorld, t: float = 0.0, occluders: Sequence[Primitive] = ()
+        self,
+        world: SimWorld,
+        t: float = 0.0,
+        occluders: Sequence[Primitive] = (),
+        roi: Window | None = None,
     ) -> DepthFrame:
-        """One noisy depth frame at time ``t`` (s); deterministic in (seed, name, t, scene)."""
+        """One noisy depth frame at time ``t`` (s); deterministic in (seed, name, t, scene).
+
+        ``roi`` ``(row0, row1, col0, col1)`` (half-open, in the rendered image; e.g. from
+        :meth:`workspace_roi`): ray-cast only those pixels (and :data:`~.noise.NOISE_MARGIN_PX`
+        around them for the noise model) and return a full-size frame that is 0 (invalid)
+        outside the ROI and the same as the full render, bit for bit, inside it. An empty ROI
+        casts nothing: an all-invalid frame.
+        """
         cfg = self._noise
         grazing = cfg.grazing_dropout > 0 and cfg.grazing_start_deg < 90.0
-        hits = self.trace(world, t, occluders, incidence=grazing)
-        depth = apply_depth_noise(
-            hits.depth_m, cfg, frame_rng(cfg.seed, self._name, t), hits.cos_incidence
-        )
-        return DepthFrame(float(t), self._name, depth, self._k, self._pose.copy())
+        t = as_finite_scalar(t, "t")
+        key = frame_key(cfg.seed, self._name, t)
+        k = self._k
+        if roi is None:
+            hits = self.trace(world, t, occluders, incidence=grazing)
+            depth = apply_depth_noise(hits.depth_m, cfg, key, hits.cos_incidence)
+            return DepthFrame(t, self._name, depth, k, self._pose.copy())
+        r0, r1, c0, c1 = self._checked_roi(roi)
+        depth = np.zeros((k.height, k.width), dtype=np.float32)
+        if r0 < r1 and c0 < c1:
+            m = NOISE_MARGIN_PX
+            cast = intersect_windows((r0 - m, r1 + m, c0 - m, c1 + m), (0, k.height, 0, k.width))
+            assert cast is not None  # it holds the non-empty ROI
+            hits = self.trace(world, t, occluders, incidence=grazing, roi=cast)
+            noisy = apply_depth_noise(
+                hits.depth_m,
+                cfg,
+                key,
+                hits.cos_incidence,
+                origin=(cast[0], cast[2]),
+                image_width=k.width,
+            )
+            depth[r0:r1, c0:c1] = noisy[r0 - cast[0] : r1 - cast[0], c0 - cast[2] : c1 - cast[2]]
+        elif not isinstance(world, SimWorld):
+            raise InputError(f"world: expected SimWorld, got {type(world).__name__}")
+        return DepthFrame(t, self._name, depth, k, self._pose.copy())
 
     def render_points(
         self, world: SimWorld, t: float = 0.0, occluders: Sequence[Primitive] = ()

@@ -30,7 +30,7 @@ from ..geometry.primitives import Box, Capsule, Primitive, Sphere
 from ..validation import as_finite_scalar, as_vector3
 from . import raycast
 from .bodies import MESH_TOLERANCE_M, Body
-from .raygrid import RayGrid, Refiner
+from .raygrid import RayGrid, Refiner, Window, intersect_windows
 
 FloatArray = NDArray[np.float64]
 
@@ -74,6 +74,15 @@ def _occluder_bounds(prim: Primitive) -> tuple[FloatArray, FloatArray]:
         return np.minimum(prim.a, prim.b) - prim.radius, np.maximum(prim.a, prim.b) + prim.radius
     reach = np.abs(prim.rotation) @ prim.half_extents
     return prim.center - reach, prim.center + reach
+
+
+def _outside_capsule(point: FloatArray, capsule: Capsule) -> bool:
+    """Whether ``point`` lies outside the capsule (by more than rounding)."""
+    ab = capsule.b - capsule.a
+    pa = point - capsule.a
+    length2 = float(ab @ ab)
+    h = min(max(float(pa @ ab) / length2, 0.0), 1.0) if length2 > 0.0 else 0.0
+    return float(np.linalg.norm(pa - h * ab)) > capsule.radius * (1.0 + 1e-9)
 
 
 def intersect_primitive(
@@ -279,6 +288,7 @@ class SimWorld:
         occluders: Sequence[Primitive] = (),
         *,
         want_normals: bool = False,
+        roi: Window | None = None,
     ) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.float32] | None]:
         """Cast a camera's rays at time ``t`` (s) through the world and the occluders.
 
@@ -289,29 +299,47 @@ class SimWorld:
         occluders
             Robot primitives present in this frame.
         want_normals
-            Also return the hit normals ``(H, W, 3)`` (zeros where nothing was hit).
+            Also return the hit normals (zeros where nothing was hit).
+        roi
+            ``(row0, row1, col0, col1)``, half-open, inside the image: cast only these pixels
+            (None: all). Each pixel's result is the same as in the whole image.
 
         Returns
         -------
         tuple
-            ``(s (H, W) float32, inf on a miss; label (H, W) int32; normals or None)``; ``s`` is
-            in units of the directions' length, ``label`` indexes :attr:`surfaces` or is
-            :data:`MISS` / :data:`OCCLUDER`.
+            ``(s float32, inf on a miss; label int32; normals or None)``, each ``(H, W)`` (or the
+            ROI's shape, ``(row1 - row0, col1 - col0)``); ``s`` is in units of the directions'
+            length, ``label`` indexes :attr:`surfaces` or is :data:`MISS` / :data:`OCCLUDER`.
         """
         t = as_finite_scalar(t, "t")
         h, w = grid.shape
-        s_best = np.full((h, w), np.inf, dtype=np.float32)
-        label = np.full((h, w), MISS, dtype=np.int32)
-        normals = np.zeros((h, w, 3), dtype=np.float32) if want_normals else None
-        windowed = []
+        full = (0, h, 0, w)
+        if roi is None:
+            roi = full
+        ro, co = roi[0], roi[2]
+        shape = (max(0, roi[1] - roi[0]), max(0, roi[3] - roi[2]))
+        s_best = np.full(shape, np.inf, dtype=np.float32)
+        label = np.full(shape, MISS, dtype=np.int32)
+        normals = np.zeros((*shape, 3), dtype=np.float32) if want_normals else None
+        if intersect_windows(roi, full) != roi:
+            if shape[0] * shape[1] == 0:
+                return s_best, label, normals
+            raise InputError(f"roi = {roi}: expected a window inside the {h}x{w} image")
+        # Every group's and occluder's window from one projection (~40 us a call saved each).
+        boxes = []
         for group in self._groups:
             lows, highs = zip(*(self.surfaces[i].bounds(t) for i in group.indices), strict=True)
-            window = grid.window(np.min(lows, axis=0), np.max(highs, axis=0))
-            if window is not None:
-                windowed.append((group, window))
-        # Largest window first: a full-frame room is then copied, not merged pixel by pixel.
-        windowed.sort(key=lambda gw: -(gw[1][1] - gw[1][0]) * (gw[1][3] - gw[1][2]))
-        for group, window in windowed:
+            boxes.append((np.min(lows, axis=0), np.max(highs, axis=0)))
+        boxes += [_occluder_bounds(prim) for prim in occluders]
+        windows = grid.windows([b[0] for b in boxes], [b[1] for b in boxes]) if boxes else []
+        windowed = []
+        for group, window in zip(self._groups, windows, strict=False):
+            part = None if window is None else intersect_windows(window, roi)
+            if part is not None:
+                windowed.append((group, window, part))
+        # Largest part first: a room covering the ROI is then copied, not merged pixel by pixel.
+        windowed.sort(key=lambda gw: -(gw[2][1] - gw[2][0]) * (gw[2][3] - gw[2][2]))
+        for group, window, part in windowed:
             scene, ids = self._scene(group)
             hits = grid.cast(
                 scene,
@@ -320,34 +348,95 @@ class SimWorld:
                 window,
                 group.offset_m + group.velocity_mps * t,
                 self._refiner(group),
+                part,
             )
-            r0, r1, c0, c1 = window
+            r0, r1, c0, c1 = part[0] - ro, part[1] - ro, part[2] - co, part[3] - co
             sub = s_best[r0:r1, c0:c1]
-            closer = hits.s < sub
             to_label = np.array((*group.indices, MISS), dtype=np.int32)  # position -1 -> MISS
-            if window == (0, h, 0, w) and not np.isfinite(s_best).any():
-                # The first full-frame group: a plain copy beats masked assignment by ~10 ms.
+            if part == roi and not np.isfinite(s_best).any():
+                # The first group covering the ROI: a plain copy beats masked assignment by ~10 ms
+                # on a full frame.
                 s_best[...] = hits.s
                 label[...] = to_label[hits.position]
                 if normals is not None:
                     normals[...] = hits.normals
                 continue
+            closer = hits.s < sub
             sub[closer] = hits.s[closer]
             label[r0:r1, c0:c1][closer] = to_label[hits.position[closer]]
             if normals is not None:
                 normals[r0:r1, c0:c1][closer] = hits.normals[closer]
-        for prim in occluders:
-            window = grid.window(*_occluder_bounds(prim))
-            if window is None:
+        self._trace_occluders(
+            grid, occluders, windows[len(self._groups) :], roi, s_best, label, normals
+        )
+        return s_best, label, normals
+
+    @staticmethod
+    def _trace_occluders(
+        grid: RayGrid,
+        occluders: Sequence[Primitive],
+        windows: Sequence[Window | None],
+        roi: Window,
+        s_best: NDArray[np.float32],
+        label: NDArray[np.int32],
+        normals: NDArray[np.float32] | None,
+    ) -> None:
+        """Merge the occluders' closed-form hits into the ROI's arrays (in place), in order.
+
+        Capsules (the robot's links) take the lean depth-only form over float64 direction
+        planes, their normals computed once at the end for the pixels they won; spheres, boxes
+        and a capsule holding the camera take the general form. Per capsule that is ~50 array
+        operations instead of ~120, which is what a link's ~1-2k-pixel window costs.
+        """
+        ro, co = roi[0], roi[2]
+        planes, dd = grid.planes()
+        # Index of the lean capsule that won each pixel (-1: none), for its normal at the end.
+        winner = np.full(s_best.shape, -1, dtype=np.int32) if normals is not None else None
+        won: list[Capsule] = []
+        for prim, window in zip(occluders, windows, strict=True):
+            part = None if window is None else intersect_windows(window, roi)
+            if part is None:
                 continue
-            r0, r1, c0, c1 = window
+            r0, r1, c0, c1 = part
+            rows, cols = slice(r0 - ro, r1 - ro), slice(c0 - co, c1 - co)
+            sub = s_best[rows, cols]
+            if isinstance(prim, Capsule) and _outside_capsule(grid.origin, prim):
+                view = (slice(r0, r1), slice(c0, c1))
+                s = raycast.capsule_depths(
+                    (planes[0][view], planes[1][view], planes[2][view]),
+                    dd[view],
+                    grid.origin,
+                    prim.a,
+                    prim.b,
+                    prim.radius,
+                )
+                # copyto(where=) writes in place without gathering the pixels first: half the
+                # time of boolean-mask assignment on a link's window.
+                closer = s < sub
+                np.copyto(sub, s, where=closer, casting="same_kind")
+                np.copyto(label[rows, cols], OCCLUDER, where=closer)
+                if winner is not None:
+                    np.copyto(winner[rows, cols], len(won), where=closer)
+                    won.append(prim)
+                continue
             dirs = grid.directions[r0:r1, c0:c1].reshape(-1, 3)
             s, n = intersect_primitive(prim, grid.origin, dirs)
             s = s.reshape(r1 - r0, c1 - c0)
-            sub = s_best[r0:r1, c0:c1]
             closer = s < sub
             sub[closer] = s[closer]
-            label[r0:r1, c0:c1][closer] = OCCLUDER
-            if normals is not None:
-                normals[r0:r1, c0:c1][closer] = n.reshape(r1 - r0, c1 - c0, 3)[closer]
-        return s_best, label, normals
+            label[rows, cols][closer] = OCCLUDER
+            if normals is not None and winner is not None:
+                normals[rows, cols][closer] = n.reshape(r1 - r0, c1 - c0, 3)[closer]
+                winner[rows, cols][closer] = -1
+        if winner is None or normals is None or not won:
+            return
+        rr, cc = np.nonzero(winner >= 0)
+        if rr.size == 0:
+            return
+        k = winner[rr, cc]
+        a = np.array([c.a for c in won])[k]
+        b = np.array([c.b for c in won])[k]
+        radius = np.array([c.radius for c in won])[k]
+        d = np.column_stack([p[rr + ro, cc + co] for p in planes])
+        points = grid.origin + s_best[rr, cc].astype(np.float64)[:, None] * d
+        normals[rr, cc] = raycast.capsule_normals(points, a, b, radius)

@@ -67,7 +67,10 @@ def demo_frames(
             t = k * period + j * period / len(scene.cameras)
             hip = hip_at(t)
             occluders = end_effector(hip, np.asarray(DEMO_HANDLE_DIRECTION))
-            frame = camera.render(scene.world, t, occluders=occluders)
+            # Only the pixels the crop reads are ray-cast (the full render's frame there, 0
+            # elsewhere); a recorder (frame_sink) may store more of the image: the whole frame.
+            roi = None if frame_sink is not None else camera.workspace_roi(hip, config.crop)
+            frame = camera.render(scene.world, t, occluders=occluders, roi=roi)
             est = pipes[camera.name].process_depth(frame, hip, exclude=occluders)
             if frame_sink is not None:
                 frame_sink(frame, hip, occluders, est)
