@@ -106,7 +106,8 @@ def _check_report(rep: dict, stdout: str) -> None:
     # How far the session gets in 6 s depends on the machine's day: the states are its own.
     assert states[0] == "starting" and set(states) <= {"starting", "ready", "enabled"}, states
     assert all(t >= 0 for t, _ in session["states"]) and isinstance(session["faults"], list)
-    assert session["misses_per_10k"] is not None and session["misses_per_10k"] >= 0
+    if len(states) > 1:  # the control process reported: its misses are in
+        assert session["misses_per_10k"] is not None and session["misses_per_10k"] >= 0
     assert set(rep["cameras"]) == {"front", "right45"}
     assert all(0 < cam["rate_hz_median"] < 100 for cam in rep["cameras"].values())
     assert 0 < rep["sim"]["real_time_factor_median"] < 10

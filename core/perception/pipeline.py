@@ -173,6 +173,10 @@ class CameraPipeline:
         with timer.stage("abstract"):
             fit = estimate_surface(rebuilt.points, h, axis, cfg.abstraction)
             gap = _support_gap(fit.centroid, rebuilt.points) if fit.valid else 0.0
+            max_gap = max(cfg.max_support_gap_m, spacing)
+            # A hole (the end effector hides the surface under the HIP) is bridged when the
+            # points surround it: that is interpolation, not extrapolation.
+            enclosed = gap > max_gap and _surrounded(fit.centroid, fit.normal, rebuilt.points, gap)
         extra = {
             **base,
             "method": fit.method or cfg.abstraction.method,
@@ -185,12 +189,13 @@ class CameraPipeline:
             extra["points"] = clusters.points
             extra["filled"] = rebuilt.filled
             extra["rejected"] = clusters.rejected
-        # Sparser sampling leaves larger gaps between true neighbours: never below the spacing.
-        max_gap = max(cfg.max_support_gap_m, spacing)
-        if fit.valid and gap > max_gap:
+        if fit.valid and gap > max_gap and not enclosed:
+            # Sparser sampling leaves larger gaps between true neighbours: never below the
+            # spacing.
             reason = (
                 f"closest point {gap * 1e3:.1f} mm from the nearest point it was fitted to "
-                f"> {max_gap * 1e3:.1f} mm (max_support_gap_m or the point spacing)"
+                f"> {max_gap * 1e3:.1f} mm (max_support_gap_m or the point spacing), "
+                "and not surrounded by them"
             )
             return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
         if not fit.valid:
@@ -226,6 +231,27 @@ def _ms(timer: StageTimer) -> dict[str, float]:
     stage_ms = dict(timer.ms)
     stage_ms["total"] = timer.total_ms
     return stage_ms
+
+
+#: A hole counts as surrounded when no angular sector wider than this (rad) around the closest
+#: point, in its tangent plane, is empty of points.
+MAX_OPEN_SECTOR_RAD = math.radians(120.0)
+
+
+def _surrounded(centroid: FloatArray, normal: FloatArray, points: FloatArray, gap: float) -> bool:
+    """Whether the points within ``2 x gap`` of the closest point (beyond the hole of radius
+    ``gap``) lie all around it in the tangent plane: no empty sector wider than 120 deg."""
+    d = points - centroid
+    near = d[np.einsum("ij,ij->i", d, d) <= 4.0 * gap * gap]
+    if near.shape[0] < 8:
+        return False
+    # Any two tangent directions: the angles' origin does not matter, only their gaps.
+    t1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(normal, t1)
+    angles = np.sort(np.arctan2(near @ t2, near @ t1))
+    gaps = np.diff(np.concatenate((angles, [angles[0] + 2.0 * math.pi])))
+    return float(gaps.max()) <= MAX_OPEN_SECTOR_RAD
 
 
 def _support_gap(centroid: FloatArray, points: FloatArray) -> float:
