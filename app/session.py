@@ -25,6 +25,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -112,7 +113,9 @@ class Session:
     dynamics
         The emulated arm's dynamics factory; ``"auto"``: :func:`default_dynamics`.
     emulator
-        Where the six emulated drives run (``"process"``: their own process).
+        Where the six emulated drives run: ``"stepped"`` (default: in the control tick, on one
+        simulation clock with the loop, :class:`~hapticloud.hardware.control.process.SimClock`)
+        or ``"process"`` (their own process on wall time, like real drives).
     enable_when_ready
         Enable once, the first time the session reports READY (``hapticloud app --enable``: the
         user asked for torque on the command line).
@@ -125,14 +128,17 @@ class Session:
         scene: str = "demo",
         *,
         dynamics: Any = "auto",
-        emulator: str = "process",
+        emulator: str = "stepped",
         enable_when_ready: bool = False,
         **process_kwargs: Any,
     ) -> None:
         self.scene = CONTROL_SCENES.get(scene, scene)
         self._dynamics = default_dynamics(self.scene) if dynamics == "auto" else dynamics
         self._emulator = emulator
-        self._kwargs = {**APP_PROCESS_KWARGS, **process_kwargs}
+        # Simulated drives stepped in the tick share one simulation clock with the loop: on a
+        # machine that cannot keep up the simulation slows down (shown) rather than faulting.
+        sim = {"sim_clock": True} if emulator == "stepped" else {}
+        self._kwargs = {**APP_PROCESS_KWARGS, **sim, **process_kwargs}
         self._enable_when_ready = enable_when_ready
         self._cp: Any = None
         self._phase = SessionPhase.STARTING
@@ -148,6 +154,8 @@ class Session:
         self.lost = 0  # gaps in the snapshots' seq (sent but not seen: none expected)
         self.result: dict[str, Any] | None = None
         self._ring = _Ring(int(HISTORY_S * SNAPSHOT_RATE_HZ) + 1, len(CONTROL_COLUMNS))
+        #: Called with every batch of drained snapshots (the app's recorder; GUI thread).
+        self.listeners: list[Callable[[list[Any]], None]] = []
 
     # ----- life cycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -249,6 +257,8 @@ class Session:
                 self._phase = SessionPhase.FAILED
                 self.alarms.appendleft(Alarm(time.monotonic(), "app", self._message))
             return None
+        for listener in self.listeners:
+            listener(snaps)
         if self._enable_when_ready and snaps[-1].state == "ready":
             self._enable_when_ready = False
             self.enable()

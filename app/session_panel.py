@@ -15,6 +15,7 @@ from typing import Any
 from PyQt6 import QtCore, QtGui, QtWidgets
 
 from .session import Session, SessionPhase
+from .status import TIMES
 
 NO_VALUE = "\u2013"
 REFRESH_S = 0.2
@@ -43,6 +44,8 @@ ALARM_COLOURS = {
     "space": "#7a5b00",
     "app": "#6f1d1b",
 }
+#: Below this simulated-per-wall time, the panel says the simulation is behind real time.
+SIM_BEHIND_FACTOR = 0.95
 SPACE_COLOURS = {"known": "#1b5e20", "holding": "#7a5b00", "stopped": "#b35900"}
 
 #: The figures shown, in order: key -> (label, tool tip).
@@ -53,7 +56,11 @@ FIELDS = {
         "what the tick knows around the HIP: known (a fresh surface or proven free space), "
         "holding (the last surface held and grown) or stopped (position held), and why",
     ),
-    "rate": ("control rate", "ticks per second of the loop (target 800 Hz)"),
+    "rate": (
+        "control rate",
+        "ticks per second of the loop (target 800 Hz); with simulated drives, the simulation's "
+        "speed against real time (it slows down when the machine cannot keep up)",
+    ),
     "misses": ("misses", "ticks that missed their 1250 µs deadline since start"),
     "tick": ("tick", "time of the newest tick / the longest since the previous snapshot"),
     "bus": ("bus load", "CAN FD bus occupancy between the last two snapshots"),
@@ -232,7 +239,15 @@ class SessionPanel(QtWidgets.QWidget):
         v["space"].setText(
             f"<span style='color:{colour}; font-weight:600'>{snap.space.upper()}</span>{why}"
         )
-        v["rate"].setText(_num(snap.control_rate_hz, ".1f", "Hz"))
+        rate = _num(snap.control_rate_hz, ".1f", "Hz")
+        factor = getattr(snap, "sim_time_factor", math.nan)
+        if math.isfinite(factor):
+            # The simulated drives run on the loop's clock: a slow machine slows the simulation.
+            behind = factor < SIM_BEHIND_FACTOR
+            colour = "#b35900" if behind else "#1b5e20"
+            note = "simulation behind real time" if behind else "simulated"
+            rate += f" <span style='color:{colour}'>({note}: {factor:.2f}{TIMES} real time)</span>"
+        v["rate"].setText(rate)
         ticks = max(snap.tick, 1)
         v["misses"].setText(f"{snap.misses} ({1e4 * snap.misses / ticks:.1f}/10k)")
         tick, worst = _num(snap.tick_us, ".0f", "µs"), _num(snap.tick_us_max, ".0f", "µs")

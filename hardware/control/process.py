@@ -64,10 +64,10 @@ from .slack import Slack
 
 __all__ = [
     "EMULATOR_MODES",
+    "ESTIMATE_WIRE_FIELDS",
     "FAULT_METHODS",
     "STATE_CODES",
     "ControlProcess",
-    "ESTIMATE_WIRE_FIELDS",
     "ControlSnapshot",
     "estimate_from_dict",
     "estimate_from_wire",
@@ -135,6 +135,9 @@ class ControlSnapshot(NamedTuple):
     #: :class:`~hapticloud.core.haptics.unknown.SpaceState`) and why.
     space: str = "known"
     space_reason: str = ""
+    #: Simulated time per wall time of the simulated drives' clock (NaN: real drives, or drives
+    #: on wall time): below 1 the machine cannot keep up and the simulation runs slower.
+    sim_time_factor: float = math.nan
 
 
 # ----- the child ---------------------------------------------------------------------------------
@@ -301,6 +304,10 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
     cfg = DriveBusConfig(cycle_rate_hz=1.0 / period).for_model(model)
     mode = params["emulator"]
     stepped = mode == "stepped"
+    # One simulation clock for the simulated drives, their arm and the link: one period per
+    # tick. A machine that cannot keep up then runs the simulation slower than real time (said
+    # in every snapshot) instead of judging the simulator's own delay as lost drive feedback.
+    sim_clock: Any = SimClock(time.monotonic()) if params.get("sim_clock") else time.monotonic
     wd_cfg = WatchdogConfig.from_dict(params["watchdogs"]) if params.get("watchdogs") else None
     wd = Watchdogs(wd_cfg)
     machine = SessionStateMachine(t=time.monotonic())
@@ -341,8 +348,9 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
             model=model,
             q0=sim.q0,
             dynamics=dynamics(model) if dynamics is not None else None,
+            clock=sim_clock,
         )
-    link = DriveLink(master_bus, cfg)
+    link = DriveLink(master_bus, cfg, clock=sim_clock)
     state_block = RobotStateBlock.attach(params["state_block"], robot.n_joints)
     n = link.n_drives
     zeros = np.zeros(n)
@@ -524,6 +532,8 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
         while running:
             ahead[0], ahead[1] = 0.0, 0
             k, t_k = dl.wait(read_ahead)
+            if sim_clock is not time.monotonic:
+                sim_clock.advance(period)
             next_deadline = t_k + period
             p0 = time.perf_counter()
             t = time.monotonic()
@@ -708,6 +718,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                                 tuple(pending_events[:_MAX_EVENTS_PER_SNAPSHOT]),
                                 hloop.guard.state.label,
                                 hloop.guard.reason[:160],
+                                math.nan if sim_clock is time.monotonic else rate * period,
                             ),
                         )
                     )
@@ -797,6 +808,19 @@ def _state_text(tr: Any) -> str:
 
 def _reaction_text(r: Any) -> str:
     return f"{r.level.name} {r.source}: {r.reason}"
+
+
+class SimClock:
+    """The simulated drives' time: advanced one control period per tick, read as a clock."""
+
+    def __init__(self, t0: float) -> None:
+        self.t = float(t0)
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
 
 
 def _space_text(tr: Any) -> str:
@@ -922,11 +946,14 @@ class ControlProcess:
         damping_nms: float = 2.0,
         dynamics: Any = None,
         bus_timing: bool = True,
+        sim_clock: bool = False,
     ) -> None:
         if emulator not in EMULATOR_MODES:
             raise ValueError(
                 f"emulator = {emulator!r}: expected one of {', '.join(EMULATOR_MODES)}"
             )
+        if sim_clock and emulator != "stepped":
+            raise ValueError("sim_clock: only with emulator = 'stepped' (simulated drives)")
         if not (math.isfinite(damping_nms) and damping_nms >= 0.0):
             raise ValueError(f"damping_nms = {damping_nms}: must be >= 0")
         if watchdogs:
@@ -948,6 +975,7 @@ class ControlProcess:
             "damping_nms": float(damping_nms),
             "dynamics": dynamics,
             "bus_timing": bool(bus_timing),
+            "sim_clock": bool(sim_clock),
         }
         self._ctx = mp.get_context("spawn")
         self._proc: Any = None
