@@ -6,6 +6,7 @@ Reactions are asserted from the recorded per-tick log the process returns, not f
 from __future__ import annotations
 
 import gc
+import math
 import os
 import time
 
@@ -182,7 +183,9 @@ def test_drive_fault_turns_torque_off_within_four_ticks(run):
 def test_controller_change_applies_when_not_enabled_and_is_refused_when_enabled():
     from hapticloud.core.control import ControllerConfig
 
-    cp = ControlProcess("impacts", fifo_priority=None, emulator="stepped")
+    # The simulation clock: a stall of this (shared) machine slows the simulated drives with
+    # the loop instead of faulting the session, which this test is not about.
+    cp = ControlProcess("impacts", fifo_priority=None, emulator="stepped", sim_clock=True)
     cp.start(timeout=60.0)
     try:
         time.sleep(0.2)
@@ -208,3 +211,33 @@ def test_controller_change_applies_when_not_enabled_and_is_refused_when_enabled(
     ]
     assert [e[0] for e in events] == sorted(e[0] for e in events)
     assert res is not None and (res["log"]["state"] == ENABLED).any()
+    assert not any(tr[2] == "fault" for tr in res["transitions"]), res["transitions"]
+
+
+@pytest.mark.parametrize(("sim_clock", "faults"), [(True, False), (False, True)])
+def test_a_stalled_machine_slows_the_simulation_instead_of_faulting(sim_clock, faults):
+    """The process is stopped for 150 ms (a machine that cannot keep up, injected): with the
+    simulated drives on the loop's clock the session stays enabled and says the simulation fell
+    behind; on wall time the same stall is lost drive feedback and the session faults."""
+    import signal
+
+    cp = ControlProcess("impacts", fifo_priority=None, emulator="stepped", sim_clock=sim_clock)
+    cp.start(timeout=60.0)
+    try:
+        time.sleep(0.3)
+        cp.enable("test")
+        time.sleep(0.3)
+        os.kill(cp.pid, signal.SIGSTOP)
+        time.sleep(0.15)
+        os.kill(cp.pid, signal.SIGCONT)
+        time.sleep(1.2)
+    finally:
+        res = cp.stop(timeout=20.0)
+    faulted = any(tr[2] == "fault" for tr in res["transitions"])
+    assert faulted is faults, res["transitions"]
+    factors = [s.sim_time_factor for s in cp.snapshots()]
+    if sim_clock:
+        assert (res["log"]["state"][-20:] == ENABLED).all()
+        assert 0.0 < min(f for f in factors if math.isfinite(f)) < 0.95
+    else:
+        assert all(math.isnan(f) for f in factors)

@@ -718,7 +718,9 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
                                 tuple(pending_events[:_MAX_EVENTS_PER_SNAPSHOT]),
                                 hloop.guard.state.label,
                                 hloop.guard.reason[:160],
-                                math.nan if sim_clock is time.monotonic else rate * period,
+                                (rate * period)
+                                if sim_clock is not time.monotonic and rate > 0.0
+                                else math.nan,
                             ),
                         )
                     )
