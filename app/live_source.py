@@ -463,6 +463,22 @@ class _SessionFeed:
 
 
 @dataclass(frozen=True)
+class RecordRequest:
+    """Ask the worker to cut every frame it shows for a recording (``record``: a
+    :class:`~hapticloud.core.recording.RecordConfig`), or to stop (``None``)."""
+
+    record: Any
+
+
+def _cut(depth: Any, hip: FloatArray, robot: Any, est: SurfaceEstimate, crop: Any, rec: Any) -> Any:
+    """The frame cut as a recording stores it (the display's packet carries it to the GUI
+    process, whose receiver hands it to the recorder: the control loop records nothing)."""
+    from hapticloud.hardware.recording.recorder import cut_frame
+
+    return cut_frame(depth, hip, robot, est, crop, rec)
+
+
+@dataclass(frozen=True)
 class _Packet:
     """One camera frame, worker -> receiver. Estimates travel as field dicts (their stage_ms
     mapping proxy does not pickle) and are rebuilt, frozen, on the receiving side."""
@@ -486,6 +502,7 @@ class _Packet:
     tick_rows: FloatArray
     config: LiveConfig | None  # only when it changed
     config_version: int
+    record: Any = None  # the frame cut for a recording (RecordRequest), or None
 
 
 @dataclass(frozen=True)
@@ -570,6 +587,7 @@ def _worker_loop(
     period = 1.0 / CAMERA_RATE_HZ
     tick_dt = 1.0 / CONTROL_RATE_HZ
     version, sent_version = 0, -1
+    recording = None  # a RecordConfig while the app records
     next_tick = 0.0
     wall0 = time.monotonic()
     k = 0
@@ -591,6 +609,9 @@ def _worker_loop(
                     item = requests.get_nowait()
                 except queue.Empty:
                     break
+                if isinstance(item, RecordRequest):
+                    recording = item.record
+                    continue
                 if isinstance(item, SessionAttach):  # a session that came up after the start
                     if feed is not None:
                         feed.close()
@@ -625,6 +646,9 @@ def _worker_loop(
             depth = cam.render(world, t, occluders=robot)
             render_ms = 1e3 * (time.perf_counter() - t0)
             est = pipes[j].process_depth(depth, hip, exclude=robot)
+            cut = None
+            if recording is not None:
+                cut = _cut(depth, hip, robot, est, pipes[j].config.crop, recording)
             stride = slice(None, None, CONTEXT_STRIDE)
             context = depth.points_world(stride, stride).astype(np.float32)
             truth = world.ground_truth(hip, t)
@@ -690,6 +714,7 @@ def _worker_loop(
                     tick_rows=np.array(rows, dtype=np.float64).reshape(-1, len(TICK_COLUMNS)),
                     config=held if version != sent_version else None,
                     config_version=version,
+                    record=cut,
                 )
             )
             sent_version = version
@@ -810,6 +835,7 @@ class LiveSource:
         self._worker: Any = None
         self._receiver: threading.Thread | None = None
         self._seq = 0
+        self._record_sink: Any = None
 
     # ----- the window's side -------------------------------------------------------------------
     @property
@@ -859,6 +885,16 @@ class LiveSource:
     def latest(self) -> Snapshot | None:
         """The newest snapshot (``None`` before the first frame); never blocks."""
         return self._latest
+
+    def record_to(self, sink: Any, record: Any = None) -> None:
+        """Record every frame shown from the next one on: the worker cuts it
+        (:func:`~hapticloud.hardware.recording.recorder.cut_frame`, ``record`` or the default
+        :class:`~hapticloud.core.recording.RecordConfig`) into the display's packet and the
+        receiver hands it to ``sink.put_cut(capture time, cut)``; ``None`` stops."""
+        from hapticloud.core.recording import RecordConfig
+
+        self._record_sink = sink
+        self._requests.put(RecordRequest(None if sink is None else record or RecordConfig()))
 
     def request_config(self, config: LiveConfig) -> int:
         """Use ``config`` from the next frame on; returns the request's version number.
@@ -914,6 +950,9 @@ class LiveSource:
                 end = msg
                 break
             self._state = SourceState.RUNNING
+            sink = self._record_sink
+            if sink is not None and msg.record is not None:
+                sink.put_cut(msg.captured, msg.record)
             self._latest = self._compose(state, msg)
         conn.close()
         if end is None:

@@ -612,6 +612,44 @@ class SceneView(QtWidgets.QWidget):
         self._banner.SetVisibility(True)
         self.request_render()
 
+    def show_markers(
+        self,
+        key: str,
+        centroids: NDArray | None,
+        normals: NDArray | None = None,
+        colour: str = "#111111",
+    ) -> None:
+        """Extra estimates drawn as points with normals (a recording's re-run beside the
+        recorded ones): ``(N, 3)`` centroids and unit normals, ``None`` or empty hides them.
+        Two actors per ``key``, made on first use (a :meth:`set_geometry` removes them), then
+        updated in place; part of the *camera estimates* layer. Schedules no paint."""
+        if self._geometry is None:
+            return
+        points_name, lines_name = f"markers:{key}:points", f"markers:{key}:normals"
+        if points_name not in self._actors:
+            self._add(
+                points_name,
+                pv.PolyData(_EMPTY.copy()),
+                "estimates",
+                color=colour,
+                point_size=11,
+                render_points_as_spheres=True,
+            )
+            self._add(
+                lines_name, pv.Line((0, 0, 0), (1, 0, 0)), "estimates", color=colour, line_width=3
+            )
+        pts = None if centroids is None else np.asarray(centroids, dtype=np.float64).reshape(-1, 3)
+        shown = _set_cloud(self._meshes[points_name], pts)
+        self._visible(points_name, shown, "estimates")
+        lines = shown and normals is not None and len(normals) == len(pts)
+        if lines:
+            tips = pts + _ARROW_M * np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+            mesh = self._meshes[lines_name]
+            mesh.points = np.vstack((pts, tips))
+            n = len(pts)
+            mesh.lines = np.column_stack((np.full(n, 2), np.arange(n), np.arange(n) + n)).ravel()
+        self._visible(lines_name, bool(lines), "estimates")
+
     def _visible(self, name: str, has_data: bool, layer: str | None = None) -> None:
         self._has_data[name] = has_data
         on = self._layer_on[layer] if layer is not None else True

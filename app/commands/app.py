@@ -40,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         nargs="?",
         default="demo",
         help="built-in scene (default: demo, the seated patient reaching to the face), a shipped "
-        "scene of assets/scenes (impacts, sliding, wall, moving-surface) or a scene file",
+        "scene of assets/scenes (impacts, sliding, wall, moving-surface) or a scene file; or a "
+        "recording (FILE.mcap) to play with its timeline",
     )
     parser.add_argument(
         "--screenshot", metavar="PATH", help="save the window as PNG after --exit-after seconds"
@@ -100,12 +101,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="enable the session (torque on) as soon as it is ready, as the Enable button does",
     )
+    from .app_recording import add_recording_options
+
+    add_recording_options(parser)
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from hapticloud.app.live_source import LiveConfig, SimSettings, scene_spec
+    from hapticloud.app.recording_source import is_recording
 
+    if is_recording(args.scene):
+        from .app_recording import run_recording
+
+        return run_recording(args)
+    check_outputs(files={"--record": args.record})
     check_outputs(files={"--screenshot": args.screenshot, "--report": args.report})
     # A one-line error for an unknown scene, a bad file or one the app cannot show, before any
     # process starts (the build is cached: the window reuses it).
@@ -166,6 +176,9 @@ def _run_window(
             None if args.no_session else (lambda: Session(scene, enable_when_ready=args.enable))
         ),
     )
+    from hapticloud.app.record_controls import install_record_controls
+
+    install_record_controls(window, args.record)
     if args.report:
         from hapticloud.app.report import AppReport
 

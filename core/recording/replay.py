@@ -122,6 +122,7 @@ def replay(
     perception: PerceptionConfig,
     fusion: FusionConfig | None = None,
     progress: Callable[[int], None] | None = None,
+    on_row: Callable[[ReplayRow], None] | None = None,
 ) -> ReplayResult:
     """Re-run perception (and fusion) on ``frames``; see the module docstring.
 
@@ -136,6 +137,8 @@ def replay(
         The parameters of the re-run (the recording's own, or changed).
     progress
         Called with the number of frames done, every 100 frames.
+    on_row
+        Called with each row as soon as it is made (a GUI draws the re-run as it goes).
     """
     fusion_cfg = FusionConfig() if fusion is None else fusion
     pipes: dict[str, CameraPipeline] = {}
@@ -150,18 +153,19 @@ def replay(
         new = pipe.process_depth(cap.frame, cap.hip, exclude=cap.exclude)
         old = recorded.get((name, cap.seq))
         t = cap.frame.t
-        rows.append(
-            ReplayRow(
-                camera=name,
-                seq=cap.seq,
-                t=t,
-                recorded=old,
-                new=new,
-                roi_exceeded=not roi_covers(cap.frame, cap.hip, perception.crop, cap.roi),
-                recorded_fused=_fuse(fused_old, old, t) if old is not None else None,
-                new_fused=_fuse(fused_new, new, t),
-            )
+        row = ReplayRow(
+            camera=name,
+            seq=cap.seq,
+            t=t,
+            recorded=old,
+            new=new,
+            roi_exceeded=not roi_covers(cap.frame, cap.hip, perception.crop, cap.roi),
+            recorded_fused=_fuse(fused_old, old, t) if old is not None else None,
+            new_fused=_fuse(fused_new, new, t),
         )
+        rows.append(row)
+        if on_row is not None:
+            on_row(row)
         counts[name] = counts.get(name, 0) + 1
         if progress is not None and (i + 1) % 100 == 0:
             progress(i + 1)

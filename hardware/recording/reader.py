@@ -59,6 +59,18 @@ class RecordedMessage:
     data: Any
 
 
+@dataclass(frozen=True)
+class ChunkSpan:
+    """One chunk of the file: its key (for :meth:`Recording.chunk_messages`), the log times of
+    its first and last message (ns) and the topics it holds. A cursor that reads small windows
+    again and again (a timeline) caches chunks by key instead of decompressing them each time."""
+
+    key: int
+    start_ns: int
+    end_ns: int
+    topics: frozenset[str]
+
+
 class Recording:
     """An open recording (see the module docstring). Use :meth:`open`; close with :meth:`close`
     or a ``with`` block."""
@@ -72,6 +84,7 @@ class Recording:
         self._counts: dict[int, int] = {}
         self._metadata: dict[str, dict[str, str]] = {}
         self._chunks: list[Chunk] = []  # unfinished files only
+        self._chunk_channels: list[set[int]] = []  # unfinished files only: channels per chunk
         self._start_ns = 0
         self._end_ns = 0
         self.finished = False
@@ -169,9 +182,12 @@ class Recording:
         # Schemas and channels are written inside the chunk that first uses them.
         for chunk in self._chunks:
             records = [chunk._single] if hasattr(chunk, "_single") else breakup_chunk(chunk)
+            ids: set[int] = set()
+            self._chunk_channels.append(ids)
             for rec in records:
                 if isinstance(rec, Message):
                     self._counts[rec.channel_id] = self._counts.get(rec.channel_id, 0) + 1
+                    ids.add(rec.channel_id)
                 elif isinstance(rec, Schema):
                     self._schemas[rec.id] = rec
                 elif isinstance(rec, Channel):
@@ -333,6 +349,69 @@ class Recording:
         for topic, ns, data in self.raw_messages(topics, start_s, end_s):
             yield RecordedMessage(topic, ns / 1e9, self._decode(by_topic[topic], data))
 
+    def chunk_spans(self) -> list[ChunkSpan]:
+        """Every chunk of the file (index only: nothing is decompressed), in file order."""
+        spans = []
+        if self._reader is not None:
+            summary = self._reader.get_summary()
+            for index in summary.chunk_indexes:
+                topics = frozenset(
+                    self._channels[cid].topic
+                    for cid in index.message_index_offsets
+                    if cid in self._channels
+                )
+                spans.append(
+                    ChunkSpan(
+                        index.chunk_start_offset,
+                        index.message_start_time,
+                        index.message_end_time,
+                        topics,
+                    )
+                )
+            return spans
+        for key, (chunk, ids) in enumerate(zip(self._chunks, self._chunk_channels, strict=True)):
+            topics = frozenset(self._channels[cid].topic for cid in ids if cid in self._channels)
+            spans.append(ChunkSpan(key, chunk.message_start_time, chunk.message_end_time, topics))
+        return spans
+
+    def chunk_messages(self, key: int) -> list[tuple[str, int, bytes]]:
+        """``(topic, log time ns, encoded bytes)`` of every message of one chunk
+        (:attr:`ChunkSpan.key`), in log-time order (file order within one time)."""
+        try:
+            if self._reader is not None:
+                assert self._file is not None
+                from mcap.data_stream import ReadDataStream
+
+                self._file.seek(key + 1 + 8)  # opcode, record length
+                chunk = Chunk.read(ReadDataStream(self._file))
+            else:
+                chunk = self._chunks[key]
+            records = _messages_of(chunk)
+        except (McapError, ValueError, EOFError, OSError, IndexError) as err:
+            raise RecordingError(f"{self.path}: unreadable chunk ({err})") from None
+        out = [
+            (self._channels[m.channel_id].topic, m.log_time, m.data)
+            for m in records
+            if m.channel_id in self._channels
+        ]
+        out.sort(key=lambda m: m[1])
+        return out
+
+    def decode(self, topic: str, data: bytes) -> Any:
+        """One message's body from its encoded bytes (a dict for JSON channels, the protobuf
+        message for Foxglove ones)."""
+        for cid, ch in self._channels.items():
+            if ch.topic == topic:
+                return self._decode(cid, data)
+        raise RecordingError(f"{self.path}: no channel {topic!r}")
+
+    def captured_frame(
+        self, capture: dict[str, Any], depth_msg: Any, log_time_s: float
+    ) -> CapturedFrame:
+        """A :class:`CapturedFrame` from a decoded capture message and its decoded depth image
+        (:class:`RecordingError` naming the message when they do not fit)."""
+        return self._frame(capture, depth_msg, log_time_s)
+
     def seek(
         self, t_s: float, topics: Iterable[str] | None = None, window_s: float = 1.0
     ) -> dict[str, RecordedMessage]:
@@ -440,4 +519,4 @@ def _messages_of(chunk: Chunk) -> list[Message]:
     return [r for r in breakup_chunk(chunk) if isinstance(r, Message)]
 
 
-__all__ = ["ChannelInfo", "RecordedMessage", "Recording"]
+__all__ = ["ChannelInfo", "ChunkSpan", "RecordedMessage", "Recording"]

@@ -22,10 +22,11 @@ import queue
 import time
 import traceback
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from hapticloud.core.camera import DepthFrame
+from hapticloud.core.camera import CameraIntrinsics, DepthFrame
 from hapticloud.core.errors import RecordingError
 from hapticloud.core.perception.config import CropConfig
 from hapticloud.core.recording import RecordConfig, primitive_to_dict, storage_roi
@@ -33,6 +34,61 @@ from hapticloud.core.recording import RecordConfig, primitive_to_dict, storage_r
 #: ``nice`` increment of the recorder process: writing gives way to perception and the GUI.
 RECORDER_NICE = 10
 _STOP = ("stop",)
+
+
+@dataclass(frozen=True)
+class FrameHeader:
+    """What the writer reads of a frame besides its pixels (time, camera, intrinsics, pose):
+    pickled in a few hundred bytes, where a full-size frame, even a zero-stride one, pickles as
+    its 1.6 MB of pixels."""
+
+    t: float
+    camera: str
+    intrinsics: CameraIntrinsics
+    pose_world_camera: Any
+
+
+@dataclass(frozen=True)
+class CutFrame:
+    """A frame cut for the recorder: its header, the stored rectangle ``roi`` and its pixels,
+    the HIP, the robot's shapes (dicts), the estimate's wire dict and its ``seq``."""
+
+    header: FrameHeader
+    roi: tuple[int, int, int, int]
+    pixels: Any
+    hip: list[float]
+    shapes: list[dict[str, Any]]
+    estimate: dict[str, Any]
+
+    @property
+    def seq(self) -> int:
+        return int(self.estimate["seq"])
+
+
+def cut_frame(
+    frame: DepthFrame,
+    hip: Any,
+    exclude: Sequence[Any],
+    estimate: Any,
+    crop: CropConfig,
+    record: RecordConfig,
+) -> CutFrame:
+    """Cut ``frame`` to what a recording stores (:func:`storage_roi` of ``crop`` and
+    ``record``), with the HIP, the robot's shapes and ``estimate`` in their recorded forms."""
+    from ..control.process import estimate_to_dict
+
+    hip_v = np.asarray(hip, dtype=np.float64)
+    roi = storage_roi(frame, hip_v, crop, record)
+    r0, r1, c0, c1 = roi
+    pixels = np.array(frame.depth_m[r0:r1, c0:c1], dtype=np.float32)
+    header = FrameHeader(
+        float(frame.t),
+        frame.camera,
+        frame.intrinsics,
+        np.asarray(frame.pose_world_camera, dtype=np.float64),
+    )
+    shapes = [primitive_to_dict(p) for p in exclude]
+    return CutFrame(header, roi, pixels, hip_v.tolist(), shapes, estimate_to_dict(estimate))
 
 
 class RecordSink:
@@ -74,25 +130,14 @@ class RecordSink:
     ) -> None:
         """One processed camera frame and its estimate (the rectangle of :class:`RecordConfig`
         is cut here, so only those pixels cross the queue)."""
-        from ..control.process import estimate_to_dict
+        self.put_cut(log_time_s, cut_frame(frame, hip, exclude, estimate, self.crop, self.record))
 
-        hip_v = np.asarray(hip, dtype=np.float64)
-        roi = storage_roi(frame, hip_v, self.crop, self.record)
-        r0, r1, c0, c1 = roi
-        pixels = np.array(frame.depth_m[r0:r1, c0:c1], dtype=np.float32)
-        # The frame without its pixels (a zero-stride image: nothing to pickle but one float).
-        k = frame.intrinsics
-        bare = DepthFrame(
-            frame.t,
-            frame.camera,
-            np.broadcast_to(np.float32(0.0), (k.height, k.width)),
-            k,
-            frame.pose_world_camera,
+    def put_cut(self, log_time_s: float, cut: CutFrame) -> None:
+        """A frame already cut (:func:`cut_frame`, e.g. in another process) and its estimate."""
+        self._put(
+            ("capture", log_time_s, cut.header, cut.roi, cut.pixels, cut.hip, cut.shapes, cut.seq)
         )
-        shapes = [primitive_to_dict(p) for p in exclude]
-        wire = estimate_to_dict(estimate)
-        self._put(("capture", log_time_s, bare, roi, pixels, hip_v.tolist(), shapes, wire["seq"]))
-        self._put(("estimate", log_time_s, frame.camera, wire))
+        self._put(("estimate", log_time_s, cut.header.camera, cut.estimate))
 
     def estimate(self, log_time_s: float, estimate: Any) -> None:
         """An estimate without a frame (an oracle camera)."""
@@ -321,4 +366,12 @@ def config_tomls(perception: Any, fusion: Any) -> dict[str, str]:
     return {"perception": _toml(perception), "fusion": _toml(fusion)}
 
 
-__all__ = ["RECORDER_NICE", "RecordSink", "Recorder", "config_tomls"]
+__all__ = [
+    "RECORDER_NICE",
+    "CutFrame",
+    "FrameHeader",
+    "RecordSink",
+    "Recorder",
+    "config_tomls",
+    "cut_frame",
+]

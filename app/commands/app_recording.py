@@ -1,0 +1,138 @@
+"""``hapticloud app FILE.mcap``: the recording's window, and the app's recording options.
+
+Not a subcommand of its own: ``app`` hands a positional argument that names a recording (a
+``.mcap`` name or the MCAP magic, :func:`~hapticloud.app.recording_source.is_recording`) here.
+A file that is not a readable recording is one line and exit 2, before any window.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Any
+
+from hapticloud.core.errors import ConfigError
+
+from . import check_outputs, overrides
+
+
+def add_recording_options(parser: argparse.ArgumentParser) -> None:
+    """``--record`` (live sessions) and ``--at`` / ``--play`` (recordings) on ``app``."""
+    parser.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record the session from the start (camera frames, estimates, control states, "
+        "events), as the Record button does; not with a recording",
+    )
+    parser.add_argument(
+        "--at",
+        metavar="S",
+        type=float,
+        help="with a recording: put the cursor S seconds after its start",
+    )
+    parser.add_argument(
+        "--play", action="store_true", help="with a recording: play it from the start (or --at)"
+    )
+
+
+def recording_config(player: Any, args: argparse.Namespace) -> Any:
+    """The panel's parameters: the recording's own, then ``--preset``'s perception and fusion,
+    then ``--set``."""
+    from hapticloud.app.live_source import LiveConfig
+    from hapticloud.app.recording_source import recorded_live_config
+
+    config = recorded_live_config(player)
+    if args.preset:
+        preset = LiveConfig.load(args.preset)
+        config = dataclasses.replace(config, perception=preset.perception, fusion=preset.fusion)
+    try:
+        return config.with_overrides(overrides(args.set))
+    except ConfigError as err:
+        raise ConfigError(f"--set {err}") from None
+
+
+def run_recording(args: argparse.Namespace) -> int:
+    """Open ``args.scene`` as a recording and show it (see the module docstring)."""
+    from hapticloud.app.recording_source import RecordingSource
+    from hapticloud.hardware.recording.cursor import RecordingPlayer
+
+    if args.record:
+        raise ConfigError(f"--record: {args.scene} is a recording; record a live session")
+    if args.report:
+        raise ConfigError("--report: reports a live session; not with a recording")
+    check_outputs(files={"--screenshot": args.screenshot})
+    player = RecordingPlayer(args.scene)  # RecordingError: one line, exit 2
+    try:
+        source = RecordingSource(player, recording_config(player, args))
+        if args.at is not None:
+            player.seek(player.start_s + args.at)
+        if args.speed != 1.0:
+            player.set_speed(args.speed)
+        exit_after = args.exit_after
+        if args.screenshot and exit_after is None:
+            exit_after = 3.0
+        shot = Path(args.screenshot) if args.screenshot else None
+
+        from hapticloud.app.screenshot import has_display, virtual_display
+
+        display: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
+        if not has_display():
+            if shot is None and exit_after is None:
+                raise ConfigError(
+                    "no display (DISPLAY/WAYLAND_DISPLAY unset or Qt set to offscreen); "
+                    "run under a desktop, or with --screenshot PATH to render on a virtual display"
+                )
+            display = virtual_display()
+    except BaseException:
+        player.close()
+        raise
+    with display:
+        return _window(source, args, exit_after, shot)
+
+
+def _window(
+    source: Any, args: argparse.Namespace, exit_after: float | None, shot: Path | None
+) -> int:
+    from hapticloud.app.recording_window import RecordingWindow
+    from hapticloud.app.screenshot import save_window
+    from PyQt6 import QtCore, QtWidgets
+
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
+    app.setApplicationName("hapticloud")
+    window = RecordingWindow(source)
+    window.controls.color_mode.setCurrentText(args.color_by)
+    window.controls.preset_actions[args.view].trigger()
+    window.resize(*args.size)
+    window.show()
+    if args.play:
+        source.player.play()
+    result = {"code": 0}
+
+    def finish() -> None:
+        if shot is not None:
+            try:
+                path = save_window(window, shot)
+                print(f"screenshot: {path}", flush=True)
+            except OSError as err:
+                print(f"hapticloud: error: {err}", file=sys.stderr)
+                result["code"] = 2
+        window.close()
+        app.quit()
+
+    if exit_after is not None:
+        QtCore.QTimer.singleShot(round(1000 * exit_after), finish)
+    app.exec()
+    window.shutdown()
+    # Destroy Qt's objects while the (virtual) display still exists.
+    window.deleteLater()
+    app.processEvents()
+    from PyQt6 import sip
+
+    sip.delete(app)
+    return result["code"]
+
+
+__all__ = ["add_recording_options", "recording_config", "run_recording"]
