@@ -85,6 +85,13 @@ class RecordControls(QtWidgets.QWidget):
         self.timer = QtCore.QTimer(self)
         self.timer.timeout.connect(self.refresh)
         self.timer.start(REFRESH_MS)
+        window.installEventFilter(self)
+
+    def eventFilter(self, obj: QtCore.QObject, event: QtCore.QEvent) -> bool:  # noqa: N802
+        """The window closes: finish the file before the window stops its sources."""
+        if obj is self.window_ and event.type() == QtCore.QEvent.Type.Close:
+            self.finish()
+        return False
 
     # ----- actions --------------------------------------------------------------------------------
     def toggle(self) -> None:
@@ -115,7 +122,10 @@ class RecordControls(QtWidgets.QWidget):
             return
         source = self._source
         if source is not None and hasattr(source, "record_to"):
-            source.record_to(None)
+            try:
+                source.record_to(None)
+            except (ValueError, OSError):
+                pass  # the source is closed already: it sends nothing more
         self._source = None
         rec.stop()
         self.finished.append(rec)

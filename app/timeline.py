@@ -43,8 +43,10 @@ RERUN_COLOUR = "#111111"
 #: Steps of the step buttons and arrow keys (s).
 SMALL_STEP_S = 0.1
 LARGE_STEP_S = 1.0
-#: d_proj axis of the strip (mm): contact at the bottom, free space clipped at the top.
-D_PROJ_RANGE_MM = (-10.0, 60.0)
+#: d_proj axis of the strip (mm): at least this range, grown to the recorded values' 1st and 99th
+#: percentiles (at most D_PROJ_MAX_MM: farther is clipped at the top).
+D_PROJ_RANGE_MM = (-5.0, 40.0)
+D_PROJ_MAX_MM = 400.0
 #: A lane holds an estimate's state this long (s) until the next one.
 HOLD_S = 0.5
 MARKS_H = 14
@@ -77,6 +79,7 @@ class TimelineStrip(QtWidgets.QWidget):
         self.r_hip_m = 0.04
         self._image: QtGui.QImage | None = None
         self._image_key: tuple | None = None
+        self._d_range_now = D_PROJ_RANGE_MM
         self.repaints = 0
         self.setMouseTracking(True)
         self.setSizePolicy(
@@ -188,7 +191,13 @@ class TimelineStrip(QtWidgets.QWidget):
                 label,
             )
         plot_y = lanes_y + len(names) * (LANE_H + 1) + GAP
-        p.drawText(QtCore.QRectF(2, plot_y, LEFT - 4, PLOT_H), _right_mid(), "d_proj")
+        self._d_range_now = self._d_range()
+        hi = self._d_range_now[1]
+        p.drawText(
+            QtCore.QRectF(2, plot_y, LEFT - 4, PLOT_H),
+            _right_mid(),
+            f"d_proj\n{hi:.0f} mm" if hi != D_PROJ_RANGE_MM[1] else "d_proj",
+        )
         p.fillRect(QtCore.QRectF(LEFT, plot_y, w, PLOT_H), QtGui.QColor("#ffffff"))
         # zero line of d_proj
         y0 = self._plot_y(0.0, plot_y)
@@ -237,8 +246,20 @@ class TimelineStrip(QtWidgets.QWidget):
         p.end()
         return image
 
-    def _plot_y(self, d_mm: float | NDArray, plot_y: float) -> float | NDArray:
+    def _d_range(self) -> tuple[float, float]:
+        """The strip's d_proj axis for the data (see :data:`D_PROJ_RANGE_MM`)."""
         lo, hi = D_PROJ_RANGE_MM
+        data = self.data
+        if data is not None:
+            parts = [lane.d_proj_mm[np.isfinite(lane.d_proj_mm)] for lane in data.cameras]
+            values = np.concatenate(parts) if parts else np.empty(0)
+            if len(values):
+                p1, p99 = np.percentile(values, (1.0, 99.0))
+                lo, hi = min(lo, float(p1)), min(max(hi, float(p99)), D_PROJ_MAX_MM)
+        return lo, hi
+
+    def _plot_y(self, d_mm: float | NDArray, plot_y: float) -> float | NDArray:
+        lo, hi = self._d_range_now
         frac = (np.clip(d_mm, lo, hi) - lo) / (hi - lo)
         return plot_y + PLOT_H - 2 - frac * (PLOT_H - 4)
 

@@ -53,7 +53,7 @@ def test_layout_reads_cameras_radius_shapes_and_parameters(synth: Path) -> None:
     np.testing.assert_allclose(layout.cameras[0].origin, (0.7, 0.15, 0.35))
     assert layout.cameras[0].axis[0] < -0.9  # looks at the wall (-x)
     assert layout.r_hip_m == pytest.approx(R_HIP_M)
-    assert layout.shapes == ("sphere",)
+    assert layout.shapes[0] == "sphere" and set(layout.shapes[1:]) == {"capsule"}
     assert layout.perception.crop.workspace_radius_m > 0 and layout.note == ""
 
 
@@ -160,8 +160,9 @@ def test_fault_events_are_marked(synth: Path) -> None:
         Event(0.4, "info", "state", "ready: reset"),
         Event(0.5, "info", "space", "holding: stale"),
     )
+    events += (Event(0.6, "warning", "reaction", "HOLD_SURFACE estimate: 0.05 s old"),)
     marks = timeline_marks(dataclasses.replace(data, events=events))
-    assert [m.t0 for m in marks] == [0.2, 0.3]
+    assert [(m.t0, m.kind) for m in marks] == [(0.2, "fault"), (0.3, "fault"), (0.6, "hold")]
 
 
 def test_player_seeks_steps_plays_and_pauses(synth: Path) -> None:
@@ -345,3 +346,15 @@ def test_a_recording_that_cannot_start_says_why(tmp_path: Path) -> None:
     assert live.sink is None
     live.stop()  # nothing to stop
     assert live.state == "failed"
+
+
+def test_seek_bench_reports_open_and_seek_figures(synth: Path) -> None:
+    from hapticloud.hardware.recording.seek_bench import seek_bench, seek_lines
+
+    said: list[str] = []
+    result = seek_bench(synth, seeks=5, say=said.append)
+    assert result["finished"] and result["duration_s"] == pytest.approx(3.0)
+    assert 0 < result["open_ms"] < 2000 and result["seek_ms"]["n"] == 5
+    assert result["seek_ms"]["max"] < 2000 and result["scan_s"] > 0
+    lines = seek_lines(result)
+    assert any("open (index only" in line for line in lines) and said

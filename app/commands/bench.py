@@ -117,6 +117,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     gui.set_defaults(handler=run_gui)
     _register_safety(studies)
     _register_record(studies)
+    _register_seek(studies)
 
 
 def _register_safety(studies: argparse._SubParsersAction) -> None:
@@ -278,3 +279,47 @@ def _register_record(studies: argparse._SubParsersAction) -> None:
         return 0
 
     record.set_defaults(handler=run_record)
+
+
+def _register_seek(studies: argparse._SubParsersAction) -> None:
+    """``bench seek FILE.mcap``: a recording's open time and seek latency (headless, --gui)."""
+    seek = studies.add_parser(
+        "seek",
+        help="a recording's open time and seek latency (the app's timeline)",
+        description="Opens FILE.mcap as 'hapticloud app FILE.mcap' does (index only), reads its "
+        "timeline, then seeks to random times: decode latency per seek (every camera's newest "
+        "frame at or before it); with --gui also click-to-paint in the recording window.",
+    )
+    seek.add_argument("file", metavar="FILE.mcap", help="the recording")
+    seek.add_argument("--seeks", type=positive_int, default=50, help="random seeks (50)")
+    seek.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    seek.add_argument("--gui", action="store_true", help="also in the window (a display, or Xvfb)")
+    seek.add_argument("--json", action="store_true", help="print one JSON object")
+
+    def run_seek(args: argparse.Namespace) -> int:
+        import contextlib
+        import json
+
+        from hapticloud.hardware.recording.seek_bench import seek_bench, seek_lines
+
+        say = (lambda _t: None) if args.json else (lambda t: print(t, flush=True))
+        result = seek_bench(args.file, args.seeks, args.seed, say)
+        if args.gui:
+            from hapticloud.app.recording_bench import gui_seek_bench
+            from hapticloud.app.screenshot import has_display, virtual_display
+
+            display: contextlib.AbstractContextManager[object] = (
+                contextlib.nullcontext() if has_display() else virtual_display()
+            )
+            with display:
+                result["gui"] = gui_seek_bench(args.file, min(args.seeks, 30), args.seed)
+                from PyQt6 import QtWidgets, sip
+
+                app = QtWidgets.QApplication.instance()
+                if app is not None:
+                    sip.delete(app)
+        for line in [json.dumps(result)] if args.json else seek_lines(result):
+            print(line)
+        return 0
+
+    seek.set_defaults(handler=run_seek)

@@ -54,6 +54,8 @@ WINDOWS_S = (0.25, 2.0, 15.0, math.inf)
 #: Frames per second the player decodes while playing.
 PLAY_RATE_HZ = 30.0
 SPEEDS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+#: Robot shapes the view has slots for (the exoskeleton's links, the ball, the handle).
+ROBOT_SLOTS = 24
 
 
 @dataclass(frozen=True)
@@ -140,7 +142,8 @@ def read_layout(rec: Recording) -> RecordingLayout:
     """Cameras, HIP radius, robot shapes and parameters of ``rec`` from its first chunks."""
     from hapticloud.core.studies.perception import R_HIP_M
 
-    cameras = rec.cameras
+    # By name: a camera keeps its colour whichever camera's frame reached the file first.
+    cameras = sorted(rec.cameras)
     wanted = {fmt.capture_topic(c): c for c in cameras}
     first: dict[str, dict[str, Any]] = {}
     r_hip = math.nan
@@ -179,6 +182,9 @@ def read_layout(rec: Recording) -> RecordingLayout:
         f"recording of {info.get('source', '?')} ({scene}), {rec.duration_s:.1f} s, "
         f"{'complete' if rec.finished else 'UNFINISHED'}"
     )
+    # Slots for more shapes than the first frames had (a session that drives the robot adds its
+    # links: capsules); the view hides the slots a frame does not use.
+    kinds += ["capsule"] * max(0, ROBOT_SLOTS - len(kinds))
     return RecordingLayout(
         name=scene,
         cameras=tuple(cams),
@@ -522,7 +528,8 @@ class RecordingPlayer:
         """Start the cursor thread (it decodes the start at once) and the timeline scan."""
         if self._threads:
             raise RuntimeError("RecordingPlayer.start: already started")
-        self.seek(self.start_s)
+        if self._tr.generation == 0:  # no seek asked for yet: show the start
+            self.seek(self.start_s)
         cursor = threading.Thread(target=self._cursor_loop, name="hapticloud-cursor", daemon=True)
         self._threads.append(cursor)
         if self._scan_enabled:

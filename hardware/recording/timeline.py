@@ -174,7 +174,7 @@ class TimelineScan:
     def __init__(self, rec: Recording, r_hip_m: float) -> None:
         self.rec = rec
         self.r_hip_m = r_hip_m
-        self.cameras = rec.cameras_with_estimates() or rec.cameras
+        self.cameras = sorted(rec.cameras_with_estimates() or rec.cameras)
         self._est: dict[str, tuple[list, list, list, list, list]] = {
             c: ([], [], [], [], []) for c in self.cameras
         }
@@ -323,22 +323,28 @@ def timeline_marks(data: TimelineData, contact_m: float | None = None) -> list[M
             low = float(np.nanmin(margin[sel])) if sel.any() else math.nan
             marks.append(Mark("contact", t0, t1, f"contact: min {what} {low:+.1f} mm"))
     for ev in data.events:
-        if _is_fault_event(ev):
-            marks.append(Mark("fault", ev.t, ev.t, f"{ev.source}: {ev.text}"))
+        kind = event_kind(ev)
+        if kind is not None:
+            marks.append(Mark(kind, ev.t, ev.t, f"{ev.source}: {ev.text}"))
     marks.sort(key=lambda m: (m.t0, m.kind))
     return marks
 
 
-def _is_fault_event(ev: Event) -> bool:
-    """A watchdog reaction above NONE, a session fault or e-stop, an error, an e-stop key."""
+def event_kind(ev: Event) -> str | None:
+    """The mark of an event: ``fault`` for a watchdog reaction that damps or cuts torque, a
+    session fault or e-stop, an error, an e-stop key; ``hold`` for a reaction that holds the
+    surface; ``None`` for the rest (space changes are marked from the control state)."""
     head = ev.text.split(":", 1)[0].strip().lower()
     if ev.level in ("error", "fatal") or ev.source == "estop":
-        return True
+        return "fault"
     if ev.source == "reaction":
-        return not ev.text.upper().startswith("NONE")
-    if ev.source == "state":
-        return head in FAULT_STATES
-    return False
+        level = ev.text.replace(":", " ").split(" ", 1)[0].upper()  # "NONE : ...", "DAMPING x: ..."
+        if level in ("NONE", ""):
+            return None
+        return "hold" if level == "HOLD_SURFACE" else "fault"
+    if ev.source == "state" and head in FAULT_STATES:
+        return "fault"
+    return None
 
 
 def merge_marks(marks: Iterable[Mark], min_gap_s: float) -> list[Mark]:
@@ -368,6 +374,7 @@ __all__ = [
     "TimelineData",
     "TimelineScan",
     "empty_timeline",
+    "event_kind",
     "intervals",
     "merge_marks",
     "timeline_marks",
