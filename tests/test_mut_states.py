@@ -93,6 +93,12 @@ def test_fault_is_accepted_from_every_connected_state_and_refused_when_safe() ->
         assert m.fault_reason == "encoder"
 
 
+def test_a_new_machine_is_disconnected_since_its_start_without_a_fault() -> None:
+    m = SessionStateMachine()
+    assert (m.state, m.since, m.fault_reason, m.log) == (S.DISCONNECTED, 0.0, "", ())
+    assert not m.torque_allowed
+
+
 def test_since_is_the_time_of_the_last_transition_only() -> None:
     m = SessionStateMachine(t=5.0)
     assert m.since == 5.0

@@ -221,3 +221,34 @@ def test_milder_reactions_and_safe_states_are_left_alone() -> None:
             assert apply_reaction(m, off, 2.0) is None and len(m.log) == n
     m2 = SessionStateMachine()  # DISCONNECTED
     assert apply_reaction(m2, off, 0.0) is None and m2.state is S.DISCONNECTED
+
+
+def test_a_new_watchdog_is_quiet_at_tick_zero() -> None:
+    wd = Watchdogs(CFG)
+    assert wd.reaction == Reaction(L.NONE, "", "all watchdogs quiet", 0, 0.0)
+    assert wd.torque_off_cleared and wd.reset(0.0) == (True, "nothing latched")
+    assert not wd.holding_surface
+
+
+def test_feedback_reasons_are_in_milliseconds() -> None:
+    wd = Watchdogs(CFG)
+    assert _check(wd, 0.0, feedback_age_s=0.005).reason == "drive feedback late (5.00 ms)"
+    assert _check(wd, DT, feedback_age_s=0.5).reason == "drive feedback lost (500.00 ms)"
+
+
+def test_the_first_of_equally_severe_watchdogs_is_the_source() -> None:
+    wd = Watchdogs(CFG)
+    r = _check(wd, 0.0, drive_fault=True, heartbeat_lost=True, bus_off=True)
+    assert (r.source, r.reason) == ("drive_fault", "a drive reports a fault")
+    assert r.active == ("drive_fault", "heartbeat", "bus_off")
+    wd = Watchdogs(CFG)
+    r = _check(wd, 0.0, camera_last_t={"right": -1.0, "left": 0.0}, estimate_age_s=1.0)
+    assert r.source == "camera:right" and r.active == ("camera:right", "estimate")
+
+
+def test_the_reset_reaction_has_no_source() -> None:
+    wd = Watchdogs(CFG)
+    _check(wd, 0.0, bus_off=True)
+    _check(wd, DT)
+    assert wd.reset(2 * DT) == (True, "reset")
+    assert wd.reaction == Reaction(L.NONE, "", "torque off reset", 1, 2 * DT)
