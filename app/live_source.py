@@ -67,7 +67,9 @@ CONTROL_RATE_HZ = 800.0
 #: Seconds of history carried in every snapshot for the live plots.
 HISTORY_S = 10.0
 #: Every n-th pixel (both directions) of a frame is kept as that camera's scene cloud: enough to
-#: show what the crop removed (~5k points per camera), small enough to send at 60 frames/s.
+#: show what the crop removed (~5k points per camera), small enough to send at 60 frames/s. It is
+#: rendered by a twin camera binned by this factor: perception's camera renders only the pixels
+#: of the workspace sphere (what stage A reads), a 64th of the rays goes to the picture around it.
 CONTEXT_STRIDE = 8
 #: Chord tolerance of the display meshes of the simulator's bodies (m). The ray-casting meshes
 #: (0.1 mm, 176k vertices for the demo) are far too heavy to draw at 30 Hz in software GL.
@@ -583,6 +585,7 @@ def _worker_loop(
     hip_path, world_at = spec.hip_path, spec.world_at
     r_hip = settings.r_hip_m
     pipes = [CameraPipeline(config.perception, camera=c.name) for c in cameras]
+    twins = [_context_camera(c) for c in cameras]
     fusion = SurfaceFusion(config.fusion)
     period = 1.0 / CAMERA_RATE_HZ
     tick_dt = 1.0 / CONTROL_RATE_HZ
@@ -643,14 +646,15 @@ def _worker_loop(
             t0 = time.perf_counter()
             if world_at is not None:
                 world = world_at(t)
-            depth = cam.render(world, t, occluders=robot)
+            roi = cam.workspace_roi(hip, pipes[j].config.crop)
+            depth = cam.render(world, t, occluders=robot, roi=roi)
             render_ms = 1e3 * (time.perf_counter() - t0)
             est = pipes[j].process_depth(depth, hip, exclude=robot)
             cut = None
             if recording is not None:
                 cut = _cut(depth, hip, robot, est, pipes[j].config.crop, recording)
-            stride = slice(None, None, CONTEXT_STRIDE)
-            context = depth.points_world(stride, stride).astype(np.float32)
+            context = twins[j].render(world, t, occluders=robot).points_world()
+            context = context.astype(np.float32)
             truth = world.ground_truth(hip, t)
 
             # Ticks before this frame see only the estimates before it.
@@ -719,6 +723,19 @@ def _worker_loop(
             )
             sent_version = version
         k += 1
+
+
+def _context_camera(cam: Any) -> Any:
+    """The same camera binned by :data:`CONTEXT_STRIDE`: the scene around the workspace."""
+    from hapticloud.core.sim.depth_camera import SimDepthCamera
+
+    return SimDepthCamera(
+        cam.name,
+        cam.intrinsics,
+        cam.pose_world_camera,
+        cam.noise,
+        decimation=CONTEXT_STRIDE,
+    )
 
 
 def _tick(

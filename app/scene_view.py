@@ -46,6 +46,9 @@ FUSED_COLOUR = "#e7298a"
 TRUTH_COLOUR = "#111111"
 HIP_COLOUR = "#ffbf00"
 ROBOT_COLOUR = "#8a9bb0"
+#: The exoskeleton is drawn as a ghost: its links sit between the view and the HIP (the hand
+#: holds the handle), and the clouds, shells and normals behind them are what is to be seen.
+ROBOT_OPACITY = 0.15
 BODY_COLOUR = "#e2d6ca"
 BODY_INSET_M = 0.003
 SHELL_COLOUR = "#5aa9e6"
@@ -361,7 +364,7 @@ class SceneView(QtWidgets.QWidget):
                 if shape == "sphere"
                 else pv.Cube()
             )
-            self._add(f"robot:{i}", template, "robot", color=ROBOT_COLOUR, opacity=0.65)
+            self._add(f"robot:{i}", template, "robot", color=ROBOT_COLOUR, opacity=ROBOT_OPACITY)
         self._add(
             "shell_spheres",
             pv.Sphere(radius=1e-3),
