@@ -90,11 +90,16 @@ class RecordingPanel(QtWidgets.QWidget):
         rows.addWidget(self.progress)
         self.summary = QtWidgets.QLabel("not run", box)
         self.summary.setWordWrap(True)
+        self.summary.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
+        box.setSizePolicy(
+            QtWidgets.QSizePolicy.Policy.Preferred, QtWidgets.QSizePolicy.Policy.Minimum
+        )
         rows.addWidget(self.summary)
         layout.addWidget(box)
 
         layout.addWidget(QtWidgets.QLabel("Marks (click to jump)", self))
         self.marks = QtWidgets.QListWidget(self)
+        self.marks.setMinimumHeight(48)
         self.marks.itemActivated.connect(self._jump)
         self.marks.itemClicked.connect(self._jump)
         layout.addWidget(self.marks, 1)
@@ -219,7 +224,7 @@ class RecordingWindow(QtWidgets.QMainWindow):
                 self.findChild(QtWidgets.QDockWidget, "Recording"),
                 self.findChild(QtWidgets.QDockWidget, "Parameters"),
             ],
-            [300, 430],
+            [370, 360],
             QtCore.Qt.Orientation.Vertical,
         )
         self.resizeDocks(
@@ -304,6 +309,10 @@ class RecordingWindow(QtWidgets.QMainWindow):
             self.plots.show_snapshot(snap)
             self.plots.show_control(self.source.control_history())
         self.status.show(snap, math.nan)
+        player = self.source.player
+        speed = self.status.labels.get("speed")
+        if speed is not None:  # a recording has no simulation speed: say how it plays
+            speed.setText(f"playing {player.speed:g}\u00d7" if player.playing else "paused")
 
     def _show_rerun(self, snap: Snapshot) -> None:
         """The re-run's estimates of each camera's newest frame at the cursor, in 3D."""

@@ -267,6 +267,8 @@ def test_a_file_that_is_not_a_scene_is_one_line(
 ) -> None:
     path = tmp_path / name
     path.write_bytes(content)
+    if command == "app" and name.endswith(".mcap"):
+        needle = "truncated before its first chunk"  # app opens recordings: the reader says why
     err = _refused(
         [command, str(path), *(["--exit-after", "1"] if command == "app" else [])], capsys
     )

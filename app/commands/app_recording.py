@@ -36,6 +36,12 @@ def add_recording_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--play", action="store_true", help="with a recording: play it from the start (or --at)"
     )
+    parser.add_argument(
+        "--rerun",
+        action="store_true",
+        help="with a recording: re-run it at once with the recorded parameters changed by "
+        "--preset and --set, as the Re-run button does",
+    )
 
 
 def recording_config(player: Any, args: argparse.Namespace) -> Any:
@@ -109,6 +115,8 @@ def _window(
     window.show()
     if args.play:
         source.player.play()
+    if args.rerun:
+        window.start_rerun()
     result = {"code": 0}
 
     def finish() -> None:

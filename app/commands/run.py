@@ -200,6 +200,7 @@ def _run_recorded(args: argparse.Namespace, scene: Any, say: Any) -> Any:
     )
 
     recorder = scene_recorder(args.record, scene, "run", "scene")
+    recorder.sink.blocking = True  # a simulated run has no deadline: wait, never drop
     try:
         record = study.run_scene(scene, None, args.duration, frame_sink=frame_hook(recorder.sink))
         record_ticks(recorder.sink, record)

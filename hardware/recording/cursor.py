@@ -530,6 +530,8 @@ class RecordingPlayer:
             raise RuntimeError("RecordingPlayer.start: already started")
         if self._tr.generation == 0:  # no seek asked for yet: show the start
             self.seek(self.start_s)
+        with self._cond:  # a seek asked for before the start counts from now
+            self._tr.requested = time.monotonic()
         cursor = threading.Thread(target=self._cursor_loop, name="hapticloud-cursor", daemon=True)
         self._threads.append(cursor)
         if self._scan_enabled:

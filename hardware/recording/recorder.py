@@ -105,11 +105,25 @@ class RecordSink:
         #: Messages this process dropped because the queue was full.
         self.dropped = 0
         self.sent = 0
+        #: In the recorder's parent: whether its process lives (a blocking sink waits while it
+        #: does: a recorder at nice +10 on a busy machine can be starved for many seconds).
+        self.alive: Any = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["alive"] = None  # a process handle stays with its parent
+        return state
 
     def _put(self, item: tuple[Any, ...]) -> bool:
         try:
             if self.blocking:
-                self._q.put(item, timeout=10.0)
+                while True:
+                    try:
+                        self._q.put(item, timeout=10.0)
+                        break
+                    except queue.Full:
+                        if self.alive is None or not self.alive():
+                            raise
             else:
                 self._q.put_nowait(item)
         except (queue.Full, ValueError, OSError):  # full, or the recorder is gone
@@ -280,6 +294,7 @@ class Recorder:
             daemon=True,
         )
         self.sink = RecordSink(self._q, self.record, crop or CropConfig())
+        self.sink.alive = self._proc.is_alive
         self._alarms: list[str] = []
         self._result: dict[str, Any] | None = None
         self._proc.start()

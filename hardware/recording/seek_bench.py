@@ -118,7 +118,8 @@ def seek_lines(result: dict[str, Any]) -> list[str]:
     gui = result.get("gui")
     if gui:
         lines.append(
-            f"  seek, click to the 3D view painted (window {gui['size']}): {stats(gui['seek_ms'])}"
+            f"  window: opened to its first frame painted in {gui['open_to_frame_ms']:.0f} ms; "
+            f"seek, click to the 3D view painted ({gui['size']}): {stats(gui['seek_ms'])}"
         )
     return lines
 
