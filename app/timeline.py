@@ -74,7 +74,7 @@ class TimelineStrip(QtWidgets.QWidget):
         self.cursor_s = start_s
         self.data: TimelineData | None = None
         self.rerun: object | None = None
-        self._rerun_done = -1
+        self._rerun_version = 0
         self.cameras: tuple[str, ...] = ()
         self.r_hip_m = 0.04
         self._image: QtGui.QImage | None = None
@@ -121,8 +121,10 @@ class TimelineStrip(QtWidgets.QWidget):
         self.update()
 
     def set_rerun(self, rerun: object | None) -> None:
+        """Draw ``rerun``'s rows (again: call it when more arrived)."""
         had = self.rerun is not None
         self.rerun = rerun
+        self._rerun_version += 1
         if had != (rerun is not None):
             self.setFixedHeight(self._height())
         self.update()
@@ -137,9 +139,7 @@ class TimelineStrip(QtWidgets.QWidget):
 
     # ----- painting -------------------------------------------------------------------------------
     def _key(self) -> tuple:
-        rerun = self.rerun
-        done = getattr(rerun, "done", 0) if rerun is not None else -1
-        return (self.width(), self.height(), id(self.data), id(rerun), done)
+        return (self.width(), self.height(), id(self.data), self._rerun_version)
 
     def paintEvent(self, event: QtGui.QPaintEvent) -> None:  # noqa: N802
         key = self._key()
@@ -477,7 +477,9 @@ class TimelineWidget(QtWidgets.QWidget):
             self._data_id = id(data)
             self.strip.set_data(data, self._cameras, player.layout.r_hip_m)
         rerun = player.rerun
-        key = None if rerun is None else (id(rerun), rerun.done, rerun.finished)
+        # While it runs, redraw the strip every 1 % of the frames, not every batch.
+        step = max(1, rerun.total // 100) if rerun is not None else 1
+        key = None if rerun is None else (id(rerun), rerun.done // step, rerun.finished)
         if key != self._rerun_key:
             self._rerun_key = key
             self.strip.set_rerun(rerun)

@@ -179,7 +179,11 @@ class ReRun:
         self.error = ""
         self.started = time.monotonic()
         self._chunks: list[NDArray[np.float64]] = []
-        self.rows = ReRunRows(np.empty((0, len(ROW_COLUMNS))), self.cameras)
+        # Rows go into a buffer that doubles when full: taking a batch costs its own size, not
+        # the whole re-run's (a 10-minute recording has 36,000 frames).
+        self._buf = np.empty((1024, len(ROW_COLUMNS)))
+        self._n = 0
+        self.rows = ReRunRows(self._buf[:0], self.cameras)
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(
@@ -220,11 +224,22 @@ class ReRun:
                 self.error = "the re-run process ended unexpectedly"
                 new = True
         if new and self._chunks:
-            self.rows = ReRunRows(np.concatenate([self.rows.rows, *self._chunks]), self.cameras)
+            for chunk in self._chunks:
+                self._append(chunk)
             self._chunks.clear()
+            self.rows = ReRunRows(self._buf[: self._n], self.cameras)
         if self.finished and self._proc.is_alive() and self.summary is not None:
             self._proc.join(0.1)
         return new
+
+    def _append(self, rows: NDArray[np.float64]) -> None:
+        need = self._n + len(rows)
+        if need > len(self._buf):
+            grown = np.empty((max(need, 2 * len(self._buf)), len(ROW_COLUMNS)))
+            grown[: self._n] = self._buf[: self._n]
+            self._buf = grown
+        self._buf[self._n : need] = rows
+        self._n = need
 
     def wait(self, timeout_s: float = 60.0) -> bool:
         """Poll until finished (tests, benchmarks); True if it finished in time."""
