@@ -93,6 +93,7 @@ class RecordingSource:
         self._latest: Snapshot | None = None
         self._key: tuple[int, int, int] | None = None
         self._seq = 0
+        self._composed_view = -1
         self.start_s = player.start_s
 
     @classmethod
@@ -164,11 +165,16 @@ class RecordingSource:
         if fused is not None:
             fused = dataclasses.replace(fused, t=self.rel(fused.t))
         player = self.player
+        now = time.monotonic()
+        # "captured": when the view was asked for (a seek's latency to the screen); a view shown
+        # again with new timeline or re-run data counts from now.
+        captured = view.requested if view.seq != self._composed_view else now
+        self._composed_view = view.seq
         return Snapshot(
             seq=self._seq,
             t=t,
-            published=time.monotonic(),
-            captured=view.requested,
+            published=now,
+            captured=captured,
             state=SourceState.RUNNING,
             message=view.error,
             hip=_frozen(hip),
