@@ -95,7 +95,7 @@ def test_stale_output_holds_the_last_valid_output_and_the_target_at_the_horizon(
     cfg, fusion, outs = _lagging()
     valid = [o for o in outs if o.valid]
     stale = [o for o in outs if not o.valid]
-    assert stale and all(o.stale for o in stale)
+    assert stale and all(o.stale is True and o.valid is False for o in stale)
     last = valid[-1]
     assert last.target_centroid[0] - last.centroid[0] > 0.02  # far behind its target
     fit = fusion.fit

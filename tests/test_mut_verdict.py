@@ -167,3 +167,8 @@ def test_space_summary_fractions_longest_unknown_and_transitions() -> None:
     assert empty["longest_unknown_s"] == 0.0 and empty["transitions"] == []
     tail = space_summary(np.arange(4) * 0.5, np.array([1.0, 0.0, 2.0, 2.0]), [], 0.5)
     assert tail["longest_unknown_s"] == 1.0
+    head = space_summary(np.arange(4) * 0.5, np.array([2.0, 2.0, 2.0, 0.0]), [], 0.5)
+    assert head["longest_unknown_s"] == 1.5
+    one = space_summary(np.zeros(1), np.array([1.0]), [], 0.5)
+    assert one["fraction"] == {"known": 0.0, "holding": 1.0, "stopped": 0.0}
+    assert one["longest_unknown_s"] == 0.5

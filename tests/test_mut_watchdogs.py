@@ -232,7 +232,7 @@ def test_a_new_watchdog_is_quiet_at_tick_zero() -> None:
 
 def test_feedback_reasons_are_in_milliseconds() -> None:
     wd = Watchdogs(CFG)
-    assert _check(wd, 0.0, feedback_age_s=0.005).reason == "drive feedback late (5.00 ms)"
+    assert _check(wd, 0.0, feedback_age_s=0.009).reason == "drive feedback late (9.00 ms)"
     assert _check(wd, DT, feedback_age_s=0.5).reason == "drive feedback lost (500.00 ms)"
 
 
