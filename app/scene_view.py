@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyvista as pv
 from hapticloud.core.geometry.primitives import Box, Capsule, Primitive, Sphere
+from hapticloud.core.haptics.unknown import UnknownSpaceConfig
 from numpy.typing import NDArray
 from PyQt6 import QtCore, QtWidgets
 from pyvistaqt import QtInteractor
@@ -49,6 +50,9 @@ ROBOT_COLOUR = "#8a9bb0"
 #: The exoskeleton is drawn as a ghost: its links sit between the view and the HIP (the hand
 #: holds the handle), and the clouds, shells and normals behind them are what is to be seen.
 ROBOT_OPACITY = 0.15
+#: The fused surface is drawn while its newest estimate is at most this old (s): the surface
+#: guard's ``fresh_s``, after which the tick holds it as unknown.
+FUSED_SHOWN_MAX_AGE_S = UnknownSpaceConfig().fresh_s
 BODY_COLOUR = "#e2d6ca"
 BODY_INSET_M = 0.003
 SHELL_COLOUR = "#5aa9e6"
@@ -783,7 +787,9 @@ class SceneView(QtWidgets.QWidget):
 
     def _show_fused(self, snap: Snapshot) -> None:
         fused = snap.fused
-        ok = fused is not None and fused.valid
+        # Nothing stale is drawn: past the age the tick stops trusting it (the status bar
+        # says how old the newest estimate is), the fused marker goes.
+        ok = fused is not None and fused.valid and fused.age_s <= FUSED_SHOWN_MAX_AGE_S
         if ok:
             self._move("fused_centroid", _scaled_at(fused.centroid, 0.007))
             self._move("fused_normal", _placement(fused.centroid, fused.normal, 1.3 * _ARROW_M))

@@ -93,7 +93,9 @@ def test_screenshot_writes_a_png_with_the_3d_view(tmp_path: Path, gui_display: s
     rows, cols = np.nonzero(bg)
     assert len(rows) > 5000, "no 3D view background in the screenshot"
     view = rgb[rows.min() : rows.max() + 1, cols.min() : cols.max() + 1]
-    assert view.shape[0] > 300 and view.shape[1] > 500
+    # The demo starts with the patient in reach: the torso fills part of the view, so the
+    # background spans less of its width than the 800 px view itself.
+    assert view.shape[0] > 300 and view.shape[1] > 300
     assert view.std() > 20
     assert len(np.unique(view.reshape(-1, 3) // 8, axis=0)) > 100
 
