@@ -39,7 +39,7 @@ from hapticloud.core.recording import CapturedFrame, primitive_from_dict, replay
 from numpy.typing import NDArray
 
 from . import format as fmt
-from .reader import ChunkSpan, Recording
+from .reader import ChunkSpan, Recording, record_message
 from .timeline import TimelineData, TimelineScan, empty_timeline
 
 FloatArray = NDArray[np.float64]
@@ -222,6 +222,9 @@ class CursorReader:
         self._topics = set(rec.channels)
         self._seq = 0
         self.chunks_read = 0
+        self._by_topic: dict[str, tuple[list[ChunkSpan], list[int]]] = {}
+        self._indexes: dict[tuple[int, str], tuple[NDArray, NDArray]] = {}
+        self._raw: OrderedDict[int, bytes] = OrderedDict()
 
     # ----- raw windows ----------------------------------------------------------------------------
     def _chunk(self, key: int) -> list[tuple[str, int, bytes]]:
@@ -263,6 +266,16 @@ class CursorReader:
         hi = fmt.to_ns(t_s)
         found: dict[str, tuple[int, bytes]] = {}
         exact = exact_s or {}
+        if self.rec.indexed:
+            # Each chunk's message index says where a topic's messages are: the newest one is
+            # found without parsing a chunk, and read alone, however far back it is.
+            for topic in [*exact, *topics]:
+                if topic in found or topic not in self._topics:
+                    continue
+                got = self._newest_indexed(topic, hi)
+                if got is not None:
+                    found[topic] = got
+            return found
         for topic, when in exact.items():
             ns = fmt.to_ns(when)
             for tp, mns, data in self.window([topic], ns - 1000, min(hi, ns + 1000)):
@@ -280,6 +293,71 @@ class CursorReader:
             if lo <= start_ns:
                 break
         return found
+
+    def at_time(self, topic: str, ns: int) -> tuple[int, bytes] | None:
+        """The message of ``topic`` logged at exactly ``ns`` (``None`` if none)."""
+        if self.rec.indexed:
+            got = self._newest_indexed(topic, ns)
+            return got if got is not None and got[0] == ns else None
+        same = [(mns, data) for tp, mns, data in self.window([topic], ns, ns) if tp == topic]
+        return same[-1] if same else None
+
+    # ----- indexed files ----------------------------------------------------------------------
+    def _topic_spans(self, topic: str) -> tuple[list[ChunkSpan], list[int]]:
+        """The chunks holding ``topic`` by the log time of their last message, and those ends."""
+        got = self._by_topic.get(topic)
+        if got is None:
+            spans = sorted((s for s in self._spans if topic in s.topics), key=lambda s: s.end_ns)
+            got = self._by_topic[topic] = (spans, [s.end_ns for s in spans])
+        return got
+
+    def _message_index(self, key: int, topic: str) -> tuple[NDArray, NDArray]:
+        cache_key = (key, topic)
+        got = self._indexes.get(cache_key)
+        if got is None:
+            got = self._indexes[cache_key] = self.rec.chunk_topic_index(key, topic)
+            if len(self._indexes) > 8192:
+                self._indexes.pop(next(iter(self._indexes)))
+        return got
+
+    def _records(self, key: int) -> bytes:
+        got = self._raw.get(key)
+        if got is not None:
+            self._raw.move_to_end(key)
+            return got
+        got = self.rec.chunk_records(key)
+        self.chunks_read += 1
+        self._raw[key] = got
+        while len(self._raw) > self._cache_size:
+            self._raw.popitem(last=False)
+        return got
+
+    def _newest_indexed(self, topic: str, hi_ns: int) -> tuple[int, bytes] | None:
+        """Chunks are visited by their end, newest first: those still open at ``hi_ns`` (they
+        may hold a message at or before it), then the ones that ended before it, until one
+        ends before the best message found (a chunk of a deterministic run's control states,
+        written at its end, can span the whole run: its start says nothing)."""
+        spans, ends = self._topic_spans(topic)
+        best: tuple[int, int, int] | None = None  # (log time, chunk key, offset)
+
+        def visit(span: ChunkSpan) -> None:
+            nonlocal best
+            times, offsets = self._message_index(span.key, topic)
+            j = int(np.searchsorted(times, hi_ns, side="right")) - 1
+            if j >= 0 and (best is None or int(times[j]) > best[0]):
+                best = (int(times[j]), span.key, int(offsets[j]))
+
+        k = bisect.bisect_left(ends, hi_ns)
+        for span in spans[k:]:
+            if span.start_ns <= hi_ns:
+                visit(span)
+        i = k - 1
+        while i >= 0 and (best is None or ends[i] >= best[0]):
+            visit(spans[i])
+            i -= 1
+        if best is None:
+            return None
+        return record_message(self._records(best[1]), best[2])
 
     # ----- one view -------------------------------------------------------------------------------
     def at(
@@ -349,13 +427,8 @@ class CursorReader:
         if depth[0] != capture[0]:
             # The newest of the two is not a pair (a torn end): take the older one's pair.
             ns = min(depth[0], capture[0])
-            pair = {
-                tp: (mns, data)
-                for tp, mns, data in self.window(
-                    (fmt.depth_topic(name), fmt.capture_topic(name)), ns, ns
-                )
-            }
-            depth, capture = pair.get(fmt.depth_topic(name)), pair.get(fmt.capture_topic(name))
+            depth = self.at_time(fmt.depth_topic(name), ns)
+            capture = self.at_time(fmt.capture_topic(name), ns)
             if depth is None or capture is None:
                 return CameraAt(name, math.nan, None, empty, empty, None)
         ns = capture[0]
@@ -377,8 +450,7 @@ class CursorReader:
         est = None
         est_msg = found.get(fmt.estimate_topic(name))
         if est_msg is None or est_msg[0] != ns:
-            same = self.window([fmt.estimate_topic(name)], ns, ns)
-            est_msg = (same[-1][1], same[-1][2]) if same else None
+            est_msg = self.at_time(fmt.estimate_topic(name), ns)
         if est_msg is not None:
             est = self._estimate(self.rec.decode(fmt.estimate_topic(name), est_msg[1]), cropped)
         return CameraAt(name, log_t, frame, cropped, context, est)

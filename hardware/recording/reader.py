@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 import os
+import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,7 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap_protobuf.decoder import DecoderFactory
+from numpy.typing import NDArray
 
 from . import format as fmt
 
@@ -397,6 +399,66 @@ class Recording:
         out.sort(key=lambda m: m[1])
         return out
 
+    @property
+    def indexed(self) -> bool:
+        """Whether chunks carry message indexes (a finished file): :meth:`chunk_topic_index`,
+        :meth:`chunk_records` and :func:`record_message` then read one message of a chunk
+        without parsing the others."""
+        return self._reader is not None
+
+    def chunk_topic_index(self, key: int, topic: str) -> tuple[NDArray, NDArray]:
+        """``(log times ns, offsets)`` of ``topic``'s messages in chunk ``key`` (offsets into
+        :meth:`chunk_records`), by time, as ``uint64`` arrays; empty when the chunk has none or
+        the file no index. One read of the chunk's MessageIndex record, parsed by numpy."""
+        empty = np.empty(0, dtype=np.uint64)
+        if self._reader is None:
+            return empty, empty
+        index = self._chunk_index_by_key().get(key)
+        cid = self._topic_ids().get(topic)
+        if index is None or cid is None or cid not in index.message_index_offsets:
+            return empty, empty
+        assert self._file is not None
+        try:
+            self._file.seek(index.message_index_offsets[cid])
+            head = self._file.read(1 + 8 + 2 + 4)
+            opcode, _length, _cid, size = struct.unpack("<BQHI", head)
+            if opcode != 0x07 or size % 16:
+                raise ValueError(f"not a message index (opcode {opcode:#x})")
+            pairs = np.frombuffer(self._file.read(size), dtype="<u8").reshape(-1, 2)
+        except (ValueError, struct.error, OSError) as err:
+            raise RecordingError(f"{self.path}: unreadable message index ({err})") from None
+        order = np.argsort(pairs[:, 0], kind="stable")
+        return pairs[order, 0].copy(), pairs[order, 1].copy()
+
+    def chunk_records(self, key: int) -> bytes:
+        """The decompressed records of chunk ``key`` (finished files)."""
+        assert self._file is not None and self._reader is not None
+        from mcap.data_stream import ReadDataStream
+        from mcap.stream_reader import get_chunk_data_stream
+
+        try:
+            self._file.seek(key + 1 + 8)
+            chunk = Chunk.read(ReadDataStream(self._file))
+            stream, _length = get_chunk_data_stream(chunk)
+            return stream.read(_length)
+        except (McapError, ValueError, EOFError, OSError) as err:
+            raise RecordingError(f"{self.path}: unreadable chunk ({err})") from None
+
+    def _chunk_index_by_key(self) -> dict[int, Any]:
+        cached = getattr(self, "_index_by_key", None)
+        if cached is None:
+            summary = self._reader.get_summary()
+            cached = {ci.chunk_start_offset: ci for ci in summary.chunk_indexes}
+            self._index_by_key = cached
+        return cached
+
+    def _topic_ids(self) -> dict[str, int]:
+        cached = getattr(self, "_ids_by_topic", None)
+        if cached is None:
+            cached = {ch.topic: cid for cid, ch in self._channels.items()}
+            self._ids_by_topic = cached
+        return cached
+
     def decode(self, topic: str, data: bytes) -> Any:
         """One message's body from its encoded bytes (a dict for JSON channels, the protobuf
         message for Foxglove ones)."""
@@ -496,6 +558,18 @@ class Recording:
             raise RecordingError(f"{where}: bad frame ({err})") from None
 
 
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log, publish time
+
+
+def record_message(records: bytes, offset: int) -> tuple[int, bytes]:
+    """``(log time ns, data)`` of the Message record at ``offset`` of a chunk's records."""
+    opcode, length, _cid, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(records, offset)
+    if opcode != 0x05:
+        raise RecordingError(f"record at {offset}: opcode {opcode:#x}, not a message")
+    start = offset + 9 + 22
+    return log_time, bytes(records[start : offset + 9 + length])
+
+
 def _single(message: Message) -> Chunk:
     """A one-message stand-in chunk (files written without chunking)."""
     from mcap.records import Chunk as _Chunk
@@ -519,4 +593,4 @@ def _messages_of(chunk: Chunk) -> list[Message]:
     return [r for r in breakup_chunk(chunk) if isinstance(r, Message)]
 
 
-__all__ = ["ChannelInfo", "ChunkSpan", "RecordedMessage", "Recording"]
+__all__ = ["ChannelInfo", "ChunkSpan", "RecordedMessage", "Recording", "record_message"]
