@@ -37,13 +37,28 @@ class PerceptionConfig(StageConfig):
         unit="m",
         doc="coarser sampling than this (voxel or camera pixels at the HIP): estimate invalid",
     )
-    max_support_gap_m: float = param(
+    supported_gap_m: float = param(
         0.008,
         lo=0.001,
         hi=0.2,
         unit="m",
-        doc="closest point farther than this (or the point spacing) from every point it was "
-        "fitted to: invalid",
+        doc="closest point within this (or the point spacing) of a point it was fitted to: "
+        "supported as it is",
+    )
+    max_support_gap_m: float = param(
+        0.03,
+        lo=0.001,
+        hi=0.2,
+        unit="m",
+        doc="closest point farther than this from every point it was fitted to (and not "
+        "surrounded by them): invalid",
+    )
+    extrapolation_margin: float = param(
+        0.15,
+        lo=0.0,
+        hi=2.0,
+        doc="an extrapolated closest point is moved toward the HIP by this x its gap beyond "
+        "supported_gap_m (what is not seen is taken as nearer)",
     )
     min_seen_fraction: float = param(
         0.9,

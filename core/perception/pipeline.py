@@ -173,10 +173,13 @@ class CameraPipeline:
         with timer.stage("abstract"):
             fit = estimate_surface(rebuilt.points, h, axis, cfg.abstraction)
             gap = _support_gap(fit.centroid, rebuilt.points) if fit.valid else 0.0
-            max_gap = max(cfg.max_support_gap_m, spacing)
+            # Sparser sampling leaves larger gaps between true neighbours: never below spacing.
+            supported = max(cfg.supported_gap_m, spacing)
             # A hole (the end effector hides the surface under the HIP) is bridged when the
             # points surround it: that is interpolation, not extrapolation.
-            enclosed = gap > max_gap and _surrounded(fit.centroid, fit.normal, rebuilt.points, gap)
+            extrapolated = gap > supported and not _surrounded(
+                fit.centroid, fit.normal, rebuilt.points, gap
+            )
         extra = {
             **base,
             "method": fit.method or cfg.abstraction.method,
@@ -189,15 +192,17 @@ class CameraPipeline:
             extra["points"] = clusters.points
             extra["filled"] = rebuilt.filled
             extra["rejected"] = clusters.rejected
-        if fit.valid and gap > max_gap and not enclosed:
-            # Sparser sampling leaves larger gaps between true neighbours: never below the
-            # spacing.
-            reason = (
-                f"closest point {gap * 1e3:.1f} mm from the nearest point it was fitted to "
-                f"> {max_gap * 1e3:.1f} mm (max_support_gap_m or the point spacing), "
-                "and not surrounded by them"
-            )
-            return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
+        centroid = fit.centroid
+        if fit.valid and extrapolated:
+            if gap > max(cfg.max_support_gap_m, supported):
+                reason = (
+                    f"closest point {gap * 1e3:.1f} mm from the nearest point it was fitted to "
+                    f"> max_support_gap_m {cfg.max_support_gap_m * 1e3:.1f} mm, and not "
+                    "surrounded by them"
+                )
+                return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
+            # Extrapolated: what the points do not show is taken as nearer, in proportion.
+            centroid = centroid + (cfg.extrapolation_margin * (gap - supported)) * fit.normal
         if not fit.valid:
             reason = fit.reason
             free = 0.0
@@ -223,7 +228,7 @@ class CameraPipeline:
                 reason = "no cluster large enough"
             return SurfaceEstimate.invalid(t, self.camera, reason, free_m=free, **extra)
         return SurfaceEstimate(
-            t=t, camera=self.camera, centroid=fit.centroid, normal=fit.normal, valid=True, **extra
+            t=t, camera=self.camera, centroid=centroid, normal=fit.normal, valid=True, **extra
         )
 
 
