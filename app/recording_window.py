@@ -240,6 +240,7 @@ class RecordingWindow(QtWidgets.QMainWindow):
         self._plotted = 0.0
         self.shown: Snapshot | None = None
         self.shown_at: float = math.nan
+        self._pending: Snapshot | None = None
         self.children_windows: list[QtWidgets.QWidget] = []
         self.view.set_geometry(source.geometry)
         self.plots.set_geometry(source.geometry)
@@ -289,26 +290,34 @@ class RecordingWindow(QtWidgets.QMainWindow):
 
     # ----- display --------------------------------------------------------------------------------
     def poll(self) -> None:
-        """Show the newest snapshot, move the timeline, take re-run rows (timer slot)."""
+        """Show the newest snapshot, move the timeline, take re-run rows (timer slot).
+
+        The 3D view gets a new snapshot at once; the plots, the status bar and the dock follow
+        at the next poll (at most every :data:`PLOT_PERIOD_S`): every widget repaint recomposes
+        the window, and after a seek the view's paint comes first."""
         rerun = self.source.player.rerun
         if rerun is not None and not rerun.finished:
             rerun.poll()
         self.timeline.refresh()
-        self.recording_panel.refresh()
         snap = self.source.latest()
-        if snap is None or snap.seq == self._shown_seq:
+        if snap is not None and snap.seq != self._shown_seq:
+            self._shown_seq = snap.seq
+            self.shown = snap
+            self.shown_at = time.monotonic()
+            self._show_rerun(snap)
+            self.view.show_snapshot(snap)
+            self._pending = snap
             return
-        self._shown_seq = snap.seq
-        self.shown = snap
-        self.shown_at = time.monotonic()
-        self._show_rerun(snap)
-        self.view.show_snapshot(snap)
+        self.recording_panel.refresh()
+        pending = self._pending
         now = time.monotonic()
-        if now - self._plotted >= PLOT_PERIOD_S:
-            self._plotted = now
-            self.plots.show_snapshot(snap)
-            self.plots.show_control(self.source.control_history())
-        self.status.show(snap, math.nan)
+        if pending is None or now - self._plotted < PLOT_PERIOD_S:
+            return
+        self._pending = None
+        self._plotted = now
+        self.plots.show_snapshot(pending)
+        self.plots.show_control(self.source.control_history())
+        self.status.show(pending, math.nan)
         player = self.source.player
         speed = self.status.labels.get("speed")
         if speed is not None:  # a recording has no simulation speed: say how it plays
