@@ -99,6 +99,13 @@ def test_free_proof_counts_only_while_the_hip_stays_inside_it() -> None:
     assert guard.step(0.01, None, Q, "stale").state is SpaceState.STOPPED
 
 
+@pytest.mark.parametrize("age", [math.nan, math.inf])
+def test_a_surface_of_unknown_age_is_not_knowledge(age: float) -> None:
+    guard = SurfaceGuard()
+    d = guard.step(0.0, _surface(), Q, age_s=age)
+    assert d.state is SpaceState.STOPPED and "unknown age" in guard.reason
+
+
 def test_hold_acceleration_pulls_back_and_damps() -> None:
     cfg = UnknownSpaceConfig(hold_kp=100.0, hold_kd=20.0)
     qdd = hold_acceleration(np.full(6, 0.1), np.full(6, -1.0), np.zeros(6), cfg)

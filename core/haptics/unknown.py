@@ -195,6 +195,8 @@ class SurfaceGuard:
         estimate is ``stop_after_s`` old.
         """
         cfg = self.config
+        if known is not None and not age_s < math.inf:  # NaN or inf: no age, no knowledge
+            known, reason = None, reason or f"surface of unknown age ({age_s})"
         if known is not None:
             self._last, self._last_t = known, t
             self._last_age = age_s if age_s > 0.0 else 0.0
