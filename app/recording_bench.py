@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from hapticloud.hardware.recording.seek_bench import _stats, seek_times
+from hapticloud.hardware.recording.seek_bench import latency_stats, seek_times
 from PyQt6 import QtCore, QtWidgets
 
 from .recording_source import RecordingSource
@@ -77,7 +77,7 @@ def gui_seek_bench(
         return {
             "size": f"{size[0]}x{size[1]}",
             "open_to_frame_ms": open_to_frame,
-            "seek_ms": _stats(out),
+            "seek_ms": latency_stats(out),
         }
     finally:
         window.close()

@@ -21,7 +21,7 @@ from typing import Any
 from .cursor import RecordingPlayer
 
 
-def _stats(values: list[float]) -> dict[str, float]:
+def latency_stats(values: list[float]) -> dict[str, float]:
     ordered = sorted(values)
     if not ordered:
         return {"n": 0}
@@ -91,8 +91,8 @@ def seek_bench(
             "open_ms": open_ms,
             "first_view_ms": first_ms,
             "scan_s": scan_s,
-            "seek_during_scan_ms": _stats(early),
-            "seek_ms": _stats(decode),
+            "seek_during_scan_ms": latency_stats(early),
+            "seek_ms": latency_stats(decode),
             "chunks_read": player._reader.chunks_read,
         }
     finally:
@@ -124,4 +124,4 @@ def seek_lines(result: dict[str, Any]) -> list[str]:
     return lines
 
 
-__all__ = ["seek_bench", "seek_lines", "seek_times", "wait_view"]
+__all__ = ["latency_stats", "seek_bench", "seek_lines", "seek_times", "wait_view"]
