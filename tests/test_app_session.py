@@ -50,7 +50,8 @@ def test_enable_takes_the_session_from_ready_to_enabled(supervised) -> None:
     # "enabled" in a later snapshot's events (the watchdogs may fault it again on a loaded
     # machine: the transition itself is what the button does).
     qtbot.waitUntil(lambda: "enabled" in _states(window), timeout=5000)
-    assert panel.alarms.topLevelItemCount() > 0
+    # The panel lists alarms on its own refresh timer, at most REFRESH_S after they arrive.
+    qtbot.waitUntil(lambda: panel.alarms.topLevelItemCount() > 0, timeout=2000)
     snap = window.session.latest
     assert snap.tick > 0 and len(window.session.history())
 
