@@ -78,7 +78,12 @@ class WatchdogConfig(StageConfig):
         0.1, lo=0.001, hi=5.0, unit="s", doc="no frame from a camera for longer: hold surface"
     )
     estimate_timeout_s: float = param(
-        0.05, lo=0.001, hi=5.0, unit="s", doc="surface estimate older than this: hold surface"
+        0.1,
+        lo=0.001,
+        hi=5.0,
+        unit="s",
+        doc="surface estimate older than this: hold surface (the tick's fresh_s: two 30 Hz "
+        "cameras with their latency leave up to ~50 ms between estimates)",
     )
     hold_timeout_s: float = param(
         0.25, lo=0.0, hi=10.0, unit="s", doc="holding the surface for longer: damping"
