@@ -52,8 +52,9 @@ from hapticloud.core.errors import ConfigError
 from hapticloud.core.fusion import FusedSurface, FusionConfig, SurfaceFusion
 from hapticloud.core.geometry.primitives import Box, Capsule, Primitive, Sphere
 from hapticloud.core.haptics import d_proj
-from hapticloud.core.loop import HapticsConfig
+from hapticloud.core.loop import HapticsConfig, admit
 from hapticloud.core.perception import STAGES, CameraPipeline, PerceptionConfig, SurfaceEstimate
+from hapticloud.core.scene.schema import CameraSpec
 from hapticloud.core.sim import GroundTruth, SimScene, demo_scene, end_effector
 from hapticloud.core.studies.demo import CAMERA_RATE_HZ, DEMO_HANDLE_DIRECTION, hip_at
 from hapticloud.core.studies.perception import R_HIP_M
@@ -62,6 +63,8 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
+#: The scenes' default estimate gate (``cameras[i].min_quality``), as the control process uses.
+ADMIT_MIN_QUALITY = CameraSpec().min_quality
 #: Rate at which the fusion is sampled between camera frames (the haptic control rate).
 CONTROL_RATE_HZ = 800.0
 #: Seconds of history carried in every snapshot for the live plots.
@@ -288,7 +291,12 @@ class SceneSpec:
 #: Built-in scenes by name; any other name is a scene file or a shipped scene of
 #: ``assets/scenes/`` (:func:`scene_spec`).
 SCENES: dict[str, SceneSpec] = {
-    "demo": SceneSpec(demo_scene, hip_at, "seated patient, hand reaching from chest to face"),
+    # The perception-only demo (--no-session): the hand reaches from the chest to the face on
+    # its own. With a session the window shows the session's own scene file (one world for the
+    # cameras, the truth and the control process: the built-in one stood 18 cm to the side).
+    "demo-path": SceneSpec(
+        demo_scene, hip_at, "seated patient, hand reaching from chest to face (no session)"
+    ),
 }
 
 
@@ -667,7 +675,9 @@ def _worker_loop(
                 next_tick += tick_dt
             if feed is not None:
                 feed.send(est, captured)
-            fusion.add(est)
+            # What the control process fuses: the same gate (quality, no estimator fallbacks).
+            if admit(est, ADMIT_MIN_QUALITY):
+                fusion.add(est)
             fused, fused_dp = _tick(fusion, t, hip, r_hip, rows)
             next_tick = max(next_tick, t + tick_dt)
 

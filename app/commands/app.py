@@ -132,7 +132,9 @@ def run(args: argparse.Namespace) -> int:
         config = config.with_overrides(overrides(args.set))
     except ConfigError as err:
         raise ConfigError(f"--set {err}") from None
-    settings = SimSettings(scene=args.scene, speed=args.speed, decimation=args.decimation)
+    # Perception alone has no arm to move the HIP: the demo then follows its scripted reach.
+    scene = "demo-path" if args.no_session and args.scene == "demo" else args.scene
+    settings = SimSettings(scene=scene, speed=args.speed, decimation=args.decimation)
     exit_after = args.exit_after
     if args.screenshot and exit_after is None:
         exit_after = 3.0
