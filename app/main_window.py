@@ -86,6 +86,23 @@ class EmergencyStopFilter(QtCore.QObject):
         return True
 
 
+def add_dock(
+    window: QtWidgets.QMainWindow,
+    title: str,
+    widget: QtWidgets.QWidget,
+    area: QtCore.Qt.DockWidgetArea,
+) -> None:
+    """``widget`` in a movable, floatable (not closable) dock named ``title``."""
+    dock = QtWidgets.QDockWidget(title, window)
+    dock.setObjectName(title)
+    dock.setWidget(widget)
+    dock.setFeatures(
+        QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetMovable
+        | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetFloatable
+    )
+    window.addDockWidget(area, dock)
+
+
 class ViewControls(QtWidgets.QToolBar):
     """Colour mode, layers, camera presets and the legend of the 3D view."""
 
@@ -261,14 +278,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- layout -------------------------------------------------------------------------------
     def _dock(self, title: str, widget: QtWidgets.QWidget, area: QtCore.Qt.DockWidgetArea) -> None:
-        dock = QtWidgets.QDockWidget(title, self)
-        dock.setObjectName(title)
-        dock.setWidget(widget)
-        dock.setFeatures(
-            QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetMovable
-            | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetFloatable
-        )
-        self.addDockWidget(area, dock)
+        add_dock(self, title, widget, area)
 
     def _build_toolbar(self) -> None:
         bar = self.addToolBar("Session")

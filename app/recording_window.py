@@ -29,7 +29,7 @@ from PyQt6 import QtCore, QtGui, QtWidgets
 
 from .live_plots import LivePlots
 from .live_source import LiveConfig, Snapshot
-from .main_window import PLOT_PERIOD_S, POLL_MS, ViewControls
+from .main_window import PLOT_PERIOD_S, POLL_MS, ViewControls, add_dock
 from .param_panel import ParamPanel
 from .recording_source import RecordingSource
 from .scene_view import SceneView
@@ -255,14 +255,7 @@ class RecordingWindow(QtWidgets.QMainWindow):
         self.timer.start(POLL_MS)
 
     def _dock(self, title: str, widget: QtWidgets.QWidget, area: QtCore.Qt.DockWidgetArea) -> None:
-        dock = QtWidgets.QDockWidget(title, self)
-        dock.setObjectName(title)
-        dock.setWidget(widget)
-        dock.setFeatures(
-            QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetMovable
-            | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetFloatable
-        )
-        self.addDockWidget(area, dock)
+        add_dock(self, title, widget, area)
 
     def _build_toolbar(self) -> None:
         bar = self.addToolBar("Recording")

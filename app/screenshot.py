@@ -122,3 +122,47 @@ def virtual_display(size: str = "1920x1080x24") -> Iterator[str]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+def run_window(
+    app: object,
+    window: object,
+    shot: Path | None,
+    exit_after: float | None,
+    before_close: object = None,
+) -> int:
+    """Run the Qt event loop of ``window`` until it closes, or for ``exit_after`` seconds; then
+    save ``shot`` (a PNG of the window) and tear Qt down while the display still exists.
+
+    ``before_close`` (a callable) runs first at the timed exit (e.g. writing a report). Returns
+    the exit code: 2 if the screenshot could not be written, else 0.
+    """
+    import sys
+
+    from PyQt6 import QtCore, sip
+
+    result = {"code": 0}
+
+    def finish() -> None:
+        if callable(before_close):
+            before_close()
+        if shot is not None:
+            try:
+                path = save_window(window, shot)
+                print(f"screenshot: {path}", flush=True)
+            except OSError as err:
+                print(f"hapticloud: error: {err}", file=sys.stderr)
+                result["code"] = 2
+        window.close()  # type: ignore[attr-defined]
+        app.quit()  # type: ignore[attr-defined]
+
+    if exit_after is not None:
+        QtCore.QTimer.singleShot(round(1000 * exit_after), finish)
+    app.exec()  # type: ignore[attr-defined]
+    window.shutdown()  # type: ignore[attr-defined]
+    # Destroy Qt's objects now, while the display still exists: a virtual display is stopped
+    # right after this returns, and Qt talking to a vanished X server aborts the process.
+    window.deleteLater()  # type: ignore[attr-defined]
+    app.processEvents()  # type: ignore[attr-defined]
+    sip.delete(app)
+    return result["code"]

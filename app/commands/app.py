@@ -163,9 +163,9 @@ def _run_window(
 ) -> int:
     from hapticloud.app.live_source import LiveSource
     from hapticloud.app.main_window import MainWindow
-    from hapticloud.app.screenshot import save_window
+    from hapticloud.app.screenshot import run_window
     from hapticloud.app.session import Session
-    from PyQt6 import QtCore, QtWidgets
+    from PyQt6 import QtWidgets
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("hapticloud")
@@ -189,31 +189,10 @@ def _run_window(
     window.controls.preset_actions[args.view].trigger()
     window.resize(*args.size)
     window.show()
-    result = {"code": 0}
 
-    def finish() -> None:
+    def report() -> None:
         if window.report is not None:
             print(f"report: {window.report.write(args.report)}", flush=True)
             print(window.report.to_json()["truth"]["line"], flush=True)
-        if shot is not None:
-            try:
-                path = save_window(window, shot)
-                print(f"screenshot: {path}", flush=True)
-            except OSError as err:
-                print(f"hapticloud: error: {err}", file=sys.stderr)
-                result["code"] = 2
-        window.close()
-        app.quit()
 
-    if exit_after is not None:
-        QtCore.QTimer.singleShot(round(1000 * exit_after), finish)
-    app.exec()
-    window.shutdown()
-    # Destroy Qt's objects now, while the display still exists: a virtual display is stopped
-    # right after this returns, and Qt talking to a vanished X server aborts the process.
-    window.deleteLater()
-    app.processEvents()
-    from PyQt6 import sip
-
-    sip.delete(app)
-    return result["code"]
+    return run_window(app, window, shot, exit_after, before_close=report)

@@ -103,8 +103,8 @@ def _window(
     source: Any, args: argparse.Namespace, exit_after: float | None, shot: Path | None
 ) -> int:
     from hapticloud.app.recording_window import RecordingWindow
-    from hapticloud.app.screenshot import save_window
-    from PyQt6 import QtCore, QtWidgets
+    from hapticloud.app.screenshot import run_window
+    from PyQt6 import QtWidgets
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("hapticloud")
@@ -117,30 +117,7 @@ def _window(
         source.player.play()
     if args.rerun:
         window.start_rerun()
-    result = {"code": 0}
-
-    def finish() -> None:
-        if shot is not None:
-            try:
-                path = save_window(window, shot)
-                print(f"screenshot: {path}", flush=True)
-            except OSError as err:
-                print(f"hapticloud: error: {err}", file=sys.stderr)
-                result["code"] = 2
-        window.close()
-        app.quit()
-
-    if exit_after is not None:
-        QtCore.QTimer.singleShot(round(1000 * exit_after), finish)
-    app.exec()
-    window.shutdown()
-    # Destroy Qt's objects while the (virtual) display still exists.
-    window.deleteLater()
-    app.processEvents()
-    from PyQt6 import sip
-
-    sip.delete(app)
-    return result["code"]
+    return run_window(app, window, shot, exit_after)
 
 
 __all__ = ["add_recording_options", "recording_config", "run_recording"]
