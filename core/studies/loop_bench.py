@@ -27,7 +27,8 @@ import numpy as np
 
 from ..scene import load_scene
 from ..sim.closed_loop import ClosedLoopSim
-from .run import DEADLINE_US, constraint_stats, control_stats
+from .run import DEADLINE_US, constraint_stats, control_stats, run_verdict
+from .verdict import UNSAFE_EXIT_CODE
 
 TARGETS = {"tick_us_median": 150.0, "tick_us_p99": 400.0}
 
@@ -90,6 +91,8 @@ def run_bench(
         "constraints": constraint_stats(record),
         "targets": TARGETS,
         "wall_time_s": wall,
+        # The run is a closed loop against the simulator's truth: it says whether it was safe.
+        "truth": run_verdict(record).to_json(),
         "python": platform.python_version(),
         "machine": platform.machine(),
     }
@@ -128,8 +131,9 @@ def main(
         f"{res['solve_us_median_solving'] or 0:.0f} us)\n"
         f"  targets: median <= {TARGETS['tick_us_median']:.0f} us, p99 <= "
         f"{TARGETS['tick_us_p99']:.0f} us: {'pass' if res['pass'] else 'FAIL'}\n"
+        f"{res['truth']['line']}\n"
     )
-    return 0
+    return UNSAFE_EXIT_CODE if res["truth"]["safe"] is False else 0
 
 
 __all__ = ["TARGETS", "main", "run_bench"]
