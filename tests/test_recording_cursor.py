@@ -315,9 +315,9 @@ def test_live_recording_writes_what_it_is_fed(synth: Path, tmp_path: Path) -> No
     live.stop()
     assert live.state in ("finishing", "done")
     assert live.wait_done(60.0) and live.state == "done", live.status()
-    # depth, calibration, capture, estimate per frame; a transform per camera; the control
-    # state and its surface; two events
-    assert live.result["messages"] == 4 * len(frames) + 2 + 2 + 2
+    # depth, its cloud, calibration, capture, estimate per frame; a transform per camera; the
+    # control state and its surface; two events
+    assert live.result["messages"] == 5 * len(frames) + 2 + 2 + 2
     player = RecordingPlayer(out)
     try:
         assert player.rec.finished and player.rec.info["source"] == "app"

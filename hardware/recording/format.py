@@ -10,6 +10,7 @@ topic                                   schema                       encoding  f
 ``/camera/<name>/depth``                ``foxglove.RawImage``        protobuf  ``<name>``
 ``/camera/<name>/calibration``          ``foxglove.CameraCalibration``  protobuf  ``<name>``
 ``/camera/<name>/capture``              ``hapticloud.Capture``       json      world
+``/camera/<name>/cloud``                ``foxglove.PointCloud``      protobuf  ``<name>``
 ``/tf``                                 ``foxglove.FrameTransforms`` protobuf  world -> ``<name>``
 ``/perception/<name>/estimate``         ``hapticloud.SurfaceEstimate``  json   world
 ``/control/state``                      ``hapticloud.ControlState``  json      world
@@ -22,13 +23,17 @@ topic                                   schema                       encoding  f
   pipeline reads, so a re-run reproduces the recorded estimates exactly;
 - calibration: the pin-hole model of that rectangle (principal point shifted by its corner), so
   Foxglove deprojects it in place;
+- cloud: the stored rectangle's valid pixels as points in the camera's frame (every
+  :data:`CLOUD_STRIDE`-th pixel each way, float32 x, y, z in metres): what Foxglove's 3D panel
+  draws of the frame (a re-run reads the depth channel, not this);
 - capture: what the pipeline needs besides the pixels: the frame's time ``t`` (the pipeline's
   clock), the full image's intrinsics, ``pose_world_camera`` (4x4, row-major), the rectangle
   ``roi = [row0, row1, col0, col1]``, the HIP at capture and the robot's exclusion shapes, and
   ``seq``, the sequence number of the estimate recorded for this frame;
 - estimate: :func:`hapticloud.hardware.control.process.estimate_to_dict`, the fields of the
   control process's estimate wire form (one encoding for the pipe and the file);
-- control state: the tick's view every 8th tick (100 Hz): HIP, joint positions and torques,
+- control state: the tick's view, every tick of a deterministic run (800 Hz) and every 8th of
+  a real-time session's (the snapshots, 100 Hz): HIP, joint positions and torques,
   ``d_proj``, the fused surface, session state and space state;
 - surface: spheres for the HIP and the fused centroid, an arrow for its normal (Foxglove 3D);
 - events: session transitions, faults, the recorder's own alarms.
@@ -72,6 +77,14 @@ CONTROL_SCHEMA = "hapticloud.ControlState"
 
 def depth_topic(camera: str) -> str:
     return f"/camera/{camera}/depth"
+
+
+#: Every n-th pixel of the stored rectangle (both ways) goes into the cloud channel.
+CLOUD_STRIDE = 4
+
+
+def cloud_topic(camera: str) -> str:
+    return f"/camera/{camera}/cloud"
 
 
 def calibration_topic(camera: str) -> str:
@@ -221,6 +234,37 @@ def encode_depth(log_time_ns: int, camera: str, pixels: NDArray[np.float32]) -> 
         encoding=DEPTH_ENCODING,
         step=4 * w,
         data=px.tobytes(),
+    ).encode()
+
+
+def encode_cloud(
+    log_time_ns: int,
+    camera: str,
+    pixels: NDArray[np.float32],
+    k: CameraIntrinsics,
+    roi: Sequence[int],
+) -> bytes:
+    """``foxglove.PointCloud`` of a depth rectangle's valid pixels, in the camera's frame."""
+    row0, _, col0, _ = (int(v) for v in roi)
+    z = pixels[::CLOUD_STRIDE, ::CLOUD_STRIDE]
+    rows, cols = np.nonzero(z > 0.0)
+    depth = z[rows, cols].astype(np.float32)
+    u = (col0 + CLOUD_STRIDE * cols).astype(np.float32)
+    v = (row0 + CLOUD_STRIDE * rows).astype(np.float32)
+    xyz = np.empty((depth.size, 3), dtype=np.float32)
+    xyz[:, 0] = (u - np.float32(k.cx)) / np.float32(k.fx) * depth
+    xyz[:, 1] = (v - np.float32(k.cy)) / np.float32(k.fy) * depth
+    xyz[:, 2] = depth
+    numeric = fm.PackedElementFieldNumericType.Float32
+    return fm.PointCloud(
+        timestamp=_stamp(log_time_ns),
+        frame_id=camera,
+        pose=_pose((0.0, 0.0, 0.0)),
+        point_stride=12,
+        fields=[
+            fm.PackedElementField(name=n, offset=4 * i, type=numeric) for i, n in enumerate("xyz")
+        ],
+        data=xyz.tobytes(),
     ).encode()
 
 
@@ -412,6 +456,7 @@ def foxglove_schema(name: str) -> tuple[str, str, bytes]:
 #: topic kind -> (schema name of foxglove.messages or ours, message encoding)
 FOXGLOVE_KINDS = {
     "depth": "RawImage",
+    "cloud": "PointCloud",
     "calibration": "CameraCalibration",
     "tf": "FrameTransforms",
     "surface": "SceneUpdate",
@@ -465,10 +510,12 @@ __all__ = [
     "camera_of",
     "capture_to_dict",
     "capture_topic",
+    "cloud_topic",
     "decode_depth",
     "decode_json",
     "depth_topic",
     "encode_calibration",
+    "encode_cloud",
     "encode_depth",
     "encode_json",
     "encode_log",

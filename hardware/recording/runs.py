@@ -2,7 +2,7 @@
 
 ``hapticloud run SCENE --record FILE`` (the deterministic run) hands the simulator's frame hook a
 blocking :class:`~.recorder.RecordSink` (the simulated run has no deadline, so nothing is ever
-dropped) and, once the run is over, writes every 8th tick of its record as control states; the
+dropped) and, once the run is over, writes every tick of its record as control states; the
 run computes exactly what it computes without recording (the hook only reads). ``run
 --hardware --record FILE`` gives the perception process a non-blocking sink and forwards the
 control process's snapshots, which the session drains anyway (:mod:`..session.run`).
@@ -20,7 +20,8 @@ from hapticloud.core.recording import RecordConfig
 from .recorder import Recorder, RecordSink, config_tomls
 
 #: Ticks between two control states in the deterministic run (as the control process's snapshots).
-CONTROL_EVERY_TICKS = 8
+#: A deterministic run records every tick of its control loop (the 800 Hz robot state).
+CONTROL_EVERY_TICKS = 1
 
 
 def scene_recorder(

@@ -29,8 +29,9 @@ from numpy.typing import NDArray
 
 from . import format as fmt
 
-#: A chunk is closed at this size even before the flush period (bounds the reader's memory).
-CHUNK_BYTES = 4 * 1024 * 1024
+#: A chunk is closed at this size even before the flush period: it bounds the reader's memory
+#: and what a full disk or a kill loses when a run writes faster than real time.
+CHUNK_BYTES = 1024 * 1024
 
 
 class LimitedFile(io.RawIOBase):
@@ -193,6 +194,12 @@ class RecordingWriter:
                 fmt.TF_TOPIC, "tf", ns, fmt.encode_transform(ns, cam, frame.pose_world_camera)
             )
         self._add(fmt.depth_topic(cam), "depth", ns, fmt.encode_depth(ns, cam, pixels))
+        self._add(
+            fmt.cloud_topic(cam),
+            "cloud",
+            ns,
+            fmt.encode_cloud(ns, cam, pixels, frame.intrinsics, roi),
+        )
         self._add(
             fmt.calibration_topic(cam),
             "calibration",
