@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from hapticloud.core.errors import HapticloudError
+from hapticloud.core.errors import ConfigError, HapticloudError
 from numpy.typing import NDArray
 from PyQt6 import QtCore, QtGui, QtWidgets
 
@@ -166,3 +166,25 @@ def run_window(
     app.processEvents()  # type: ignore[attr-defined]
     sip.delete(app)
     return result["code"]
+
+
+def window_display(
+    screenshot: str | None, exit_after: float | None
+) -> tuple[contextlib.AbstractContextManager[object], float | None, Path | None]:
+    """Where a window of the command line shows: ``(display, exit_after, shot)``.
+
+    A screenshot without ``--exit-after`` is taken after 3 s; without a display, a virtual one
+    is started when the window will close by itself, else a one-line error says why not.
+    """
+    if screenshot and exit_after is None:
+        exit_after = 3.0
+    shot = Path(screenshot) if screenshot else None
+    display: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
+    if not has_display():
+        if shot is None and exit_after is None:
+            raise ConfigError(
+                "no display (DISPLAY/WAYLAND_DISPLAY unset or Qt set to offscreen); "
+                "run under a desktop, or with --screenshot PATH to render on a virtual display"
+            )
+        display = virtual_display()
+    return display, exit_after, shot

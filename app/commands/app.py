@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import re
 import sys
@@ -135,21 +134,9 @@ def run(args: argparse.Namespace) -> int:
     # Perception alone has no arm to move the HIP: the demo then follows its scripted reach.
     scene = "demo-path" if args.no_session and args.scene == "demo" else args.scene
     settings = SimSettings(scene=scene, speed=args.speed, decimation=args.decimation)
-    exit_after = args.exit_after
-    if args.screenshot and exit_after is None:
-        exit_after = 3.0
-    shot = Path(args.screenshot) if args.screenshot else None
+    from hapticloud.app.screenshot import window_display
 
-    from hapticloud.app.screenshot import has_display, virtual_display
-
-    display: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
-    if not has_display():
-        if shot is None and exit_after is None:
-            raise ConfigError(
-                "no display (DISPLAY/WAYLAND_DISPLAY unset or Qt set to offscreen); "
-                "run under a desktop, or with --screenshot PATH to render on a virtual display"
-            )
-        display = virtual_display()
+    display, exit_after, shot = window_display(args.screenshot, args.exit_after)
     with display:
         return _run_window(settings, config, args, exit_after, shot)
 

@@ -8,7 +8,6 @@ A file that is not a readable recording is one line and exit 2, before any windo
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import sys
 from pathlib import Path
@@ -77,21 +76,9 @@ def run_recording(args: argparse.Namespace) -> int:
             player.seek(player.start_s + args.at)
         if args.speed != 1.0:
             player.set_speed(args.speed)
-        exit_after = args.exit_after
-        if args.screenshot and exit_after is None:
-            exit_after = 3.0
-        shot = Path(args.screenshot) if args.screenshot else None
+        from hapticloud.app.screenshot import window_display
 
-        from hapticloud.app.screenshot import has_display, virtual_display
-
-        display: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
-        if not has_display():
-            if shot is None and exit_after is None:
-                raise ConfigError(
-                    "no display (DISPLAY/WAYLAND_DISPLAY unset or Qt set to offscreen); "
-                    "run under a desktop, or with --screenshot PATH to render on a virtual display"
-                )
-            display = virtual_display()
+        display, exit_after, shot = window_display(args.screenshot, args.exit_after)
     except BaseException:
         player.close()
         raise
