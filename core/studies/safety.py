@@ -82,22 +82,30 @@ def run_cell(scene_name: str, row: Degradation, duration_s: float | None) -> dic
     from .run import report, run_scene
 
     sets = overrides_for(scene_name, row)
-    rec = run_scene(scene_name, sets, duration_s)
-    rep = report(rec)
+    return cell_from_report(
+        scene_name, row.name, sets, report(run_scene(scene_name, sets, duration_s))
+    )
+
+
+def cell_from_report(
+    scene: str, degradation: str, sets: Mapping[str, Any], rep: Mapping[str, Any]
+) -> dict[str, Any]:
+    """A table cell from a run's report (``hapticloud run`` or ``run --hardware``: both carry
+    ``truth``, ``space`` and ``verdict``)."""
+    truth = rep["truth"]
     space = rep["space"] or {"fraction": {"holding": 0.0, "stopped": 0.0}, "longest_unknown_s": 0}
+    margin = truth.get("min_margin_m")
     return {
-        "scene": scene_name,
-        "degradation": row.name,
-        "set": sets,
-        "min_margin_mm": None
-        if rep["min_margin_m"] is None
-        else round(rep["min_margin_m"] * 1e3, 2),
-        "t_min_margin_s": rep["t_min_margin_s"],
+        "scene": scene,
+        "degradation": degradation,
+        "set": dict(sets),
+        "min_margin_mm": None if margin is None else round(margin * 1e3, 2),
+        "t_min_margin_s": truth.get("t_min_margin_s"),
         "held_fraction": round(space["fraction"]["holding"], 4),
         "stopped_fraction": round(space["fraction"]["stopped"], 4),
         "longest_unknown_s": round(space["longest_unknown_s"], 3),
         "verdict": rep["verdict"],
-        "line": rep["truth"]["line"],
+        "line": truth["line"],
     }
 
 
@@ -134,6 +142,7 @@ __all__ = [
     "SCENES",
     "Degradation",
     "all_safe",
+    "cell_from_report",
     "cell_text",
     "degradations",
     "overrides_for",

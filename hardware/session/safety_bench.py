@@ -15,7 +15,13 @@ from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-from hapticloud.core.studies.safety import SCENES, Degradation, degradations, run_cell
+from hapticloud.core.studies.safety import (
+    SCENES,
+    Degradation,
+    cell_from_report,
+    degradations,
+    run_cell,
+)
 from hapticloud.core.threads import settle_numerics
 
 
@@ -81,22 +87,11 @@ def hardware_cell(
         if hog is not None:
             hog.terminate()
             hog.join(5.0)
-    truth, space = rep["truth"], rep["space"]
-    margin = truth.get("min_margin_m")
-    return {
-        "scene": scene,
-        "degradation": "hardware path, one core busy" if busy_core else "hardware path",
-        "set": dict(overrides or {}),
-        "min_margin_mm": None if margin is None else round(margin * 1e3, 2),
-        "t_min_margin_s": truth.get("t_min_margin_s"),
-        "held_fraction": round(space["fraction"]["holding"], 4),
-        "stopped_fraction": round(space["fraction"]["stopped"], 4),
-        "longest_unknown_s": round(space["longest_unknown_s"], 3),
-        "verdict": rep["verdict"],
-        "line": truth["line"],
-        "fused_valid_fraction": rep["estimates"].get("fused_valid_fraction"),
-        "estimates_sent": rep["estimates"].get("sent", {}),
-    }
+    name = "hardware path, one core busy" if busy_core else "hardware path"
+    cell = cell_from_report(scene, name, overrides or {}, rep)
+    cell["fused_valid_fraction"] = rep["estimates"].get("fused_valid_fraction")
+    cell["estimates_sent"] = rep["estimates"].get("sent", {})
+    return cell
 
 
 __all__ = ["hardware_cell", "run_table"]
