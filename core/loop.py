@@ -298,6 +298,8 @@ class HapticLoop:
         self.fusion = fusion
         self.walls = tuple(w for w in walls if w.level == "haptic")
         self.fused_region = fused_region
+        #: Unknown is not free: what the tick does without a valid fused surface.
+        self.guard = SurfaceGuard(self.config.unknown)
         self.configure(self.config)
         n = controller.n_joints
         self.n_joints = n
@@ -318,8 +320,6 @@ class HapticLoop:
             for w in self.walls
         ]
         self._solved_last = False
-        #: Unknown is not free: what the tick does without a valid fused surface.
-        self.guard = SurfaceGuard(self.config.unknown)
         # Level 5 of the position hold while stopped: [I, 0] x = qdd_hold.
         a_hold = np.zeros((n, 2 * n))
         a_hold[:, :n] = np.eye(n)
@@ -352,8 +352,7 @@ class HapticLoop:
             for region in {self.fused_region, *(w.part for w in self.walls)}
         }
         self.config = cfg
-        if hasattr(self, "guard"):
-            self.guard.configure(cfg.unknown)
+        self.guard.configure(cfg.unknown)
         self.positional, self.velocity, self.force = positional, velocity, force
         self._force_limit = force_limit
         self._act_motion = max(
