@@ -4,7 +4,7 @@ Actors are created once, when the scene's geometry is known (:meth:`SceneView.se
 a frame (:meth:`SceneView.show_snapshot`) only writes new point arrays or transforms into them and
 asks for one repaint. Re-adding actors per frame costs about 30 ms (the issue's measurement); the
 in-place update of two 5000-point clouds and every overlay costs 3.4 ms (median, measured by
-``tests/test_app_view_rate.py``); the paint after it is the rest of a frame.
+``tests/app/test_app_view_rate.py``); the paint after it is the rest of a frame.
 
 Why ``update()`` and not ``render()``: pyvistaqt's ``QOpenGLWidget`` renders VTK in every
 ``paintGL``, so ``plotter.render()`` followed by the repaint it schedules renders twice (measured

@@ -271,7 +271,7 @@ class HapticLoop:
     :class:`~hapticloud.core.haptics.VelocityConstraint`,
     :class:`~hapticloud.core.haptics.ForceConstraint`), evaluated here into one preallocated
     buffer: their per-call argument checks and small allocations cost ~20 µs of a budget of
-    150 µs (``tests/test_loop.py`` checks that both give the same rows). The positional and the
+    150 µs (``tests/core/test_loop.py`` checks that both give the same rows). The positional and the
     velocity rows of one surface share ``G = [-J_c, 0]``, so they are one row with the smaller
     right-hand side: only the tighter of two parallel half-spaces can bind.
     """
@@ -627,7 +627,7 @@ class HapticLoop:
         ``qdd = M^-1 tau_int``) or ``qdd = -D qd`` (minimum accelerations). If that ``x`` already
         meets every inequality of levels 1-4 (torque limits, joint position and velocity limits,
         fixed walls, the haptic rows), it is the hierarchy's unique optimum: every level holds
-        exactly, so the solver would return it too (``tests/test_loop.py`` checks both agree).
+        exactly, so the solver would return it too (``tests/core/test_loop.py`` checks both agree).
         Most ticks are of this kind (free motion, or constraints present but not binding); it
         saves the ~100 µs of the solve on them. ``step_us`` of its output is the check's time,
         ``solve_us`` is 0.

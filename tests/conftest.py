@@ -7,13 +7,19 @@ without one, the ``gui_display`` fixture starts ``Xvfb`` for the session (CI run
 so the display exists before the ``QApplication`` is created. At the end of the session the
 ``QApplication`` is destroyed before the Xvfb it talks to is stopped (Qt aborts the process when
 its X server vanishes under it).
+
+``--headless`` is the run of the core and hardware layers without any GUI library
+(``packaging/test.sh`` runs it first, CI too): importing Qt, VTK or a Qt widget library then fails
+the import at once, and the session fails if one got in some other way.
 """
 
 from __future__ import annotations
 
+import importlib.abc
 import os
 import shutil
-from collections.abc import Iterator
+import sys
+from collections.abc import Iterator, Sequence
 
 import pytest
 
@@ -58,3 +64,38 @@ def _destroy_qapplication() -> None:
 def qapp_args(gui_display: str) -> list[str]:
     """pytest-qt's QApplication arguments; depending on ``gui_display`` orders the two."""
     return ["hapticloud-tests"]
+
+
+#: The GUI libraries a headless run must never import (top-level package names).
+GUI_PACKAGES = ("PyQt6", "pyvista", "pyvistaqt", "vtk", "vtkmodules", "pyqtgraph", "superqt")
+
+
+class _GuiImportBlocker(importlib.abc.MetaPathFinder):
+    def find_spec(self, name: str, path: Sequence[str] | None, target: object = None) -> None:
+        if name.split(".")[0] in GUI_PACKAGES:
+            raise ImportError(f"headless run: {name} may not be imported by core or hardware")
+        return None
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--headless",
+        action="store_true",
+        help="fail on any import of a GUI library (the core + hardware run)",
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if config.getoption("--headless"):
+        loaded = [name for name in GUI_PACKAGES if name in sys.modules]
+        if loaded:
+            raise pytest.UsageError(f"--headless: already imported: {', '.join(loaded)}")
+        sys.meta_path.insert(0, _GuiImportBlocker())
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    if session.config.getoption("--headless"):
+        loaded = [name for name in GUI_PACKAGES if name in sys.modules]
+        if loaded:
+            print(f"\n--headless: GUI libraries were imported: {', '.join(loaded)}")
+            session.exitstatus = pytest.ExitCode.TESTS_FAILED

@@ -27,7 +27,7 @@ Cost (sample 6-joint arm, one core, single-threaded BLAS; ``OPENBLAS_NUM_THREADS
 bench loop``, 2026-11-21): a step that solves the hierarchy takes ~115 us median in the closed
 loop of the ``impacts`` scene (16 % of its ticks; the hierarchy's solve ~68 us of it, the DAQP
 call ~15 us), ~70 us when replayed with warm caches; a step whose transparent torques already
-satisfy every constraint skips the solver (~11 us). ``pytest tests/test_controller.py -m slow
+satisfy every constraint skips the solver (~11 us). ``pytest tests/core/test_controller.py -m slow
 -s`` measures the step on its own.
 """
 
@@ -462,7 +462,7 @@ class HierarchicalController:
         """The rows of :meth:`_levels`, written straight into the solver's stacked form.
 
         Same values, same order, same checks (and messages) as building the row objects and
-        stacking them (``tests/test_controller.py`` compares both); the levels as row objects
+        stacking them (``tests/core/test_controller.py`` compares both); the levels as row objects
         are built only if something asks for them (the fallback cascade).
         """
         (

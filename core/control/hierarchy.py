@@ -509,7 +509,7 @@ class HierarchicalSolver:
     ) -> tuple[FloatArray, int, int]:
         """One DAQP call; ``break_points`` from a :class:`_Layout` (a leading 0 is an empty hard
         level: every real level is then soft). DAQP only reads them (it takes no read-only
-        buffers, so the cached arrays stay writable; ``tests/test_contact_fast_paths.py``)."""
+        buffers, so the cached arrays stay writable; ``tests/core/test_contact_fast_paths.py``)."""
         m = A.shape[0]
         if self._sense.shape[0] < m:
             self._sense = np.zeros(2 * m, dtype=np.intc)

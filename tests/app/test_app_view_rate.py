@@ -3,7 +3,7 @@
 Snapshots come from the live demo, their clouds resampled to 5000 points per camera and four
 paper-method shells added per camera; each update is ``show_snapshot`` followed by the one
 paint it schedules (measured until ``paintGL`` returned). Run with
-``pytest -m slow tests/test_app_view_rate.py -s`` to see the figures.
+``pytest -m slow tests/app/test_app_view_rate.py -s`` to see the figures.
 """
 
 from __future__ import annotations

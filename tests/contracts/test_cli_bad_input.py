@@ -249,7 +249,7 @@ def test_compare_paper_alone_is_refused_as_its_help_says(wall: str, capsys, no_r
         cli.main(["run", "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
     assert "only with --sweep" in help_text
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     assert "`--compare-paper` needs `--sweep`" in readme
 
 

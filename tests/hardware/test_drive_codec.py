@@ -26,7 +26,7 @@ from hapticloud.hardware.drives.protocol import (
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DBC_PATH = ROOT / "assets" / "can" / "anyexo_drives.dbc"
 LSB_T, LSB_Q, LSB_V = p.TORQUE_LSB_NM, p.POSITION_LSB_RAD, p.VELOCITY_LSB_RAD_S
 

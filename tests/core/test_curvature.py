@@ -1,7 +1,7 @@
 """The curvature-aware estimator on synthetic patches: accuracy, robustness, guards; the study.
 
 Run the accuracy/speed study (prints the table, asserts the targets) with
-``pytest -m slow tests/test_curvature.py -s``.
+``pytest -m slow tests/core/test_curvature.py -s``.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hapticloud.app import cli
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _run(*args: str, env: dict[str, str] | None = None, timeout: float = 90.0):
