@@ -12,6 +12,7 @@ import math
 import time
 from typing import Any
 
+from hapticloud.hardware.session.states import state_label
 from PyQt6 import QtCore, QtGui, QtWidgets
 
 from .session import Session, SessionPhase
@@ -208,7 +209,7 @@ class SessionPanel(QtWidgets.QWidget):
         """Update from the session's newest snapshot (numbers at most every :data:`REFRESH_S`)."""
         session = self.session
         state = self.state_text()
-        text = f" {state.upper().replace('_', ' ')} "
+        text = f" {state_label(state)} "
         if self.state_label.text() != text:
             self.state_label.setText(text)
             self.state_label.setStyleSheet(

@@ -14,6 +14,7 @@ import math
 import time
 
 import numpy as np
+from hapticloud.hardware.session.states import state_label
 from PyQt6 import QtWidgets
 
 from .live_source import Snapshot, SourceState
@@ -89,7 +90,7 @@ class StatusPanel:
     def show_session(self, state: str, snap: object | None, style: str) -> None:
         """The session's state (coloured like the session panel), control rate and misses."""
         label = self.labels["session"]
-        text = f" {state.upper().replace('_', ' ')} "
+        text = f" {state_label(state)} "
         if label.text() != text:
             label.setText(text)
             label.setStyleSheet(style)

@@ -59,6 +59,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..drives.faults import FAULT_METHODS
+from ..session.states import SessionState
 from .deadline import DeadlineLoop, lock_memory
 from .slack import Slack
 
@@ -81,15 +82,9 @@ PERIOD_S = 1.0 / 800.0
 #: Where the emulated drives run (see :class:`ControlProcess`).
 EMULATOR_MODES = ("process", "stepped", "thread")
 
-#: Integer codes of the session states in the recorded log (``log["state"]``).
-STATE_CODES = {
-    "disconnected": 0,
-    "connected": 1,
-    "ready": 2,
-    "enabled": 3,
-    "fault": 4,
-    "emergency_stop": 5,
-}
+#: Integer codes of the session states in the recorded log (``log["state"]``), by state value:
+#: :attr:`SessionState.code <hapticloud.hardware.session.states.SessionState.code>`.
+STATE_CODES = {state.value: state.code for state in SessionState}
 
 _channels = itertools.count()
 
@@ -273,7 +268,6 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
     from ..drives.transport import SocketPairBus
     from ..session import ReactionLevel as L
     from ..session import (
-        SessionState,
         SessionStateMachine,
         WatchdogConfig,
         Watchdogs,
@@ -363,7 +357,7 @@ def _run_child(params: dict[str, Any], cmd_conn: Any, out_conn: Any, est_conn: A
     snap_every = int(params["snapshot_every"])
     out_fd = out_conn.fileno()
     dl = DeadlineLoop(period, spin_s=float(params["spin_s"]), fifo_priority=params["fifo_priority"])
-    codes = {s: STATE_CODES[s.value] for s in SessionState}
+    codes = {s: s.code for s in SessionState}
     try:
         # Start-up, outside the timed loop: NMT start, drives to READY TO SWITCH ON.
         if emu is not None:

@@ -33,6 +33,39 @@ class SessionState(enum.Enum):
     FAULT = "fault"
     EMERGENCY_STOP = "emergency_stop"
 
+    @property
+    def code(self) -> int:
+        """The state's integer in logs and recordings (stable: never renumber)."""
+        return _STATE_CODE[self.value]
+
+    @property
+    def label(self) -> str:
+        """How the state is shown to a person (``EMERGENCY STOP``)."""
+        return state_label(self.value)
+
+    @classmethod
+    def from_code(cls, code: int) -> SessionState:
+        """The state of :attr:`code` (``ValueError`` naming an unknown one)."""
+        for state in cls:
+            if _STATE_CODE[state.value] == code:
+                return state
+        raise ValueError(f"session state code {code!r}: not one of {sorted(_STATE_CODE.values())}")
+
+
+def state_label(value: str) -> str:
+    """The :attr:`SessionState.label` of a state's value; any other word (``starting``, ``closed``:
+    the app's states around a session) shown the same way."""
+    return value.replace("_", " ").upper()
+
+
+_STATE_CODE = {
+    "disconnected": 0,
+    "connected": 1,
+    "ready": 2,
+    "enabled": 3,
+    "fault": 4,
+    "emergency_stop": 5,
+}
 
 S = SessionState
 
