@@ -457,7 +457,7 @@ class _SessionFeed:
             return
         import select
 
-        from hapticloud.hardware.control.process import send_estimate
+        from hapticloud.hardware.control.messages import send_estimate
 
         try:
             if not select.select((), (self._conn.fileno(),), (), 0.0)[1]:

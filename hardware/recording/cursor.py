@@ -456,7 +456,7 @@ class CursorReader:
         return CameraAt(name, log_t, frame, cropped, context, est)
 
     def _estimate(self, wire: dict[str, Any], points: NDArray[np.float32]) -> SurfaceEstimate:
-        from ..control.process import estimate_from_dict
+        from ..control.messages import estimate_from_dict
 
         try:
             est = estimate_from_dict(wire)
@@ -511,7 +511,7 @@ class CursorReader:
                         )
                     )
         else:
-            from ..control.process import estimate_from_dict
+            from ..control.messages import estimate_from_dict
 
             topics = [fmt.estimate_topic(c.name) for c in self.layout.cameras]
             import dataclasses

@@ -30,7 +30,7 @@ topic                                   schema                       encoding  f
   clock), the full image's intrinsics, ``pose_world_camera`` (4x4, row-major), the rectangle
   ``roi = [row0, row1, col0, col1]``, the HIP at capture and the robot's exclusion shapes, and
   ``seq``, the sequence number of the estimate recorded for this frame;
-- estimate: :func:`hapticloud.hardware.control.process.estimate_to_dict`, the fields of the
+- estimate: :func:`hapticloud.hardware.control.messages.estimate_to_dict`, the fields of the
   control process's estimate wire form (one encoding for the pipe and the file);
 - control state: the tick's view, every tick of a deterministic run (800 Hz) and every 8th of
   a real-time session's (the snapshots, 100 Hz): HIP, joint positions and torques,

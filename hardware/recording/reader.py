@@ -492,7 +492,7 @@ class Recording:
     ) -> Iterator[Any]:
         """Recorded :class:`~hapticloud.core.perception.SurfaceEstimate` s (from the estimate
         channels' wire dicts), in log-time order."""
-        from ..control.process import estimate_from_dict
+        from ..control.messages import estimate_from_dict
 
         names = self.cameras_with_estimates() if cameras is None else list(cameras)
         topics = [fmt.estimate_topic(c) for c in names]

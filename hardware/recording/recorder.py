@@ -75,7 +75,7 @@ def cut_frame(
 ) -> CutFrame:
     """Cut ``frame`` to what a recording stores (:func:`storage_roi` of ``crop`` and
     ``record``), with the HIP, the robot's shapes and ``estimate`` in their recorded forms."""
-    from ..control.process import estimate_to_dict
+    from ..control.messages import estimate_to_dict
 
     hip_v = np.asarray(hip, dtype=np.float64)
     roi = storage_roi(frame, hip_v, crop, record)
@@ -155,7 +155,7 @@ class RecordSink:
 
     def estimate(self, log_time_s: float, estimate: Any) -> None:
         """An estimate without a frame (an oracle camera)."""
-        from ..control.process import estimate_to_dict
+        from ..control.messages import estimate_to_dict
 
         self._put(("estimate", log_time_s, str(estimate.camera), estimate_to_dict(estimate)))
 

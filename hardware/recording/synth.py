@@ -109,7 +109,7 @@ def synthesize(
     n_cams = len(CAMERAS)
     frame_dt = 1.0 / rate_hz
     control_dt = 0.01
-    from ..control.process import estimate_to_dict
+    from ..control.messages import estimate_to_dict
 
     events = [
         (times.hold[0], "warning", "space", "holding: no fresh surface"),

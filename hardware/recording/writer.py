@@ -212,7 +212,7 @@ class RecordingWriter:
         self._add(fmt.capture_topic(cam), "capture", ns, fmt.encode_json(record))
 
     def estimate(self, log_time_s: float, camera: str, wire: Mapping[str, Any]) -> None:
-        """One estimate as :func:`~hapticloud.hardware.control.process.estimate_to_dict`."""
+        """One estimate as :func:`~hapticloud.hardware.control.messages.estimate_to_dict`."""
         ns = fmt.to_ns(log_time_s)
         self._add(fmt.estimate_topic(camera), "estimate", ns, fmt.encode_json(wire))
 

@@ -120,7 +120,7 @@ def _perception(
     from hapticloud.core.sim.closed_loop import ClosedLoopSim
     from hapticloud.core.threads import settle_numerics
 
-    from ..control.process import send_estimate
+    from ..control.messages import send_estimate
     from ..control.shared_state import RobotStateBlock
 
     settle_numerics(1)
