@@ -18,9 +18,21 @@ for top in ("core", "hardware", "app"):
         package_dir[f"hapticloud.{top}.{sub}"] = f"{top}/" + sub.replace(".", "/")
 package_dir["hapticloud.assets"] = "assets"
 
+# What the program reads at run time (hapticloud.assets.asset_path); named by kind so that a
+# stray file in assets/ (a __pycache__, an editor's backup) stays out of the wheel.
+ASSET_FILES = [
+    "scenes/*.toml",
+    "robot/*.urdf",
+    "robot/*.md",
+    "can/*.dbc",
+    "presets/*.toml",
+    "icons/*.svg",
+    "icons/*.png",
+]
+
 setup(
     packages=sorted(package_dir),
     package_dir=package_dir,
-    package_data={"hapticloud.assets": ["**/*"]},
-    include_package_data=True,
+    package_data={"hapticloud.assets": ASSET_FILES},
+    include_package_data=False,
 )

@@ -18,7 +18,6 @@ Example
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
@@ -27,6 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 import pinocchio as pin
+from hapticloud.assets import asset_path
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import ConfigError, InputError
@@ -82,19 +82,8 @@ class LinkCapsule(NamedTuple):
 
 
 def default_urdf_path() -> Path:
-    """Path of the shipped ANYexo-like URDF (``hapticloud.assets/robot/anyexo.urdf``).
-
-    ``hapticloud.assets`` is a namespace package whose search path, in an editable install, also
-    holds a non-directory entry that ``importlib.resources.files`` rejects; so the real folders on
-    the path are searched, then the source layout.
-    """
-    relative = Path("robot", "anyexo.urdf")
-    spec = importlib.util.find_spec("hapticloud.assets")
-    for entry in (spec.submodule_search_locations or []) if spec is not None else []:
-        candidate = Path(entry) / relative
-        if candidate.is_file():
-            return candidate
-    return Path(__file__).resolve().parents[2] / "assets" / relative
+    """Path of the shipped ANYexo-like URDF (``hapticloud.assets/robot/anyexo.urdf``)."""
+    return asset_path("robot", "anyexo.urdf")
 
 
 def _rpy_matrix(roll: float, pitch: float, yaw: float) -> FloatArray:

@@ -18,12 +18,13 @@ a wall, the moving surface): an empty file is refused (``scene.toml: scene is em
 from __future__ import annotations
 
 import copy
-import importlib.util
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from hapticloud.assets import asset_path
 
 from ..config import StageConfig
 from ..errors import ConfigError
@@ -94,12 +95,7 @@ class Scene:
 
 def scenes_dir() -> Path:
     """The shipped scene files' folder (``hapticloud.assets/scenes``)."""
-    spec = importlib.util.find_spec("hapticloud.assets")
-    for entry in (spec.submodule_search_locations or []) if spec is not None else []:
-        candidate = Path(entry) / "scenes"
-        if candidate.is_dir():
-            return candidate
-    return Path(__file__).resolve().parents[2] / "assets" / "scenes"
+    return asset_path("scenes")
 
 
 def resolve_scene(name: str | Path) -> Path:

@@ -13,13 +13,13 @@ that cantools decodes what this module packs.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import struct
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
+from hapticloud.assets import asset_path
 from hapticloud.core.errors import InputError
 
 from . import protocol as p
@@ -380,18 +380,8 @@ def _dbc_messages(first_node: int) -> list[_Msg]:
 
 
 def default_dbc_path() -> Path:
-    """Path of the shipped DBC (``hapticloud.assets/can/anyexo_drives.dbc``).
-
-    Searched like :func:`hapticloud.core.robot.default_urdf_path`: the real folders of the
-    ``hapticloud.assets`` namespace package, then the source layout.
-    """
-    relative = Path("can", "anyexo_drives.dbc")
-    spec = importlib.util.find_spec("hapticloud.assets")
-    for entry in (spec.submodule_search_locations or []) if spec is not None else []:
-        candidate = Path(entry) / relative
-        if candidate.is_file():
-            return candidate
-    return Path(__file__).resolve().parents[2] / "assets" / relative
+    """Path of the shipped DBC (``hapticloud.assets/can/anyexo_drives.dbc``)."""
+    return asset_path("can", "anyexo_drives.dbc")
 
 
 def _num(x: float) -> str:
