@@ -19,11 +19,22 @@ from hapticloud.core.threads import set_environment
 set_environment(1)
 
 from hapticloud.app.commands import reason  # noqa: E402
+from hapticloud.app.commands.version import VersionAction  # noqa: E402
 from hapticloud.core.errors import ConfigError, HapticloudError  # noqa: E402
 
 EXIT_BAD_INPUT = 2
 # Registration order is the order --help lists them.
-COMMANDS = ("app", "demo", "run", "replay", "info", "recover", "import", "bench")
+COMMANDS = (
+    "app",
+    "demo",
+    "run",
+    "replay",
+    "info",
+    "recover",
+    "import",
+    "bench",
+    "install-desktop",
+)
 DEFAULT_COMMAND = ["app"]
 
 
@@ -33,9 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Haptic rendering on live point clouds. With no command: the desktop app "
         "on the simulated demo scene ('hapticloud demo' prints the demo as text).",
     )
+    parser.add_argument("--version", action=VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        importlib.import_module(f"hapticloud.app.commands.{name}").register(sub)
+        importlib.import_module(f"hapticloud.app.commands.{name.replace('-', '_')}").register(sub)
     return parser
 
 
@@ -47,7 +59,7 @@ def route(argv: Sequence[str]) -> list[str]:
     command's name: a mistyped command (:class:`ConfigError` saying which it resembles).
     """
     argv = list(argv)
-    if argv and argv[0] in (*COMMANDS, "-h", "--help"):
+    if argv and argv[0] in (*COMMANDS, "-h", "--help", "--version"):
         return argv
     if argv and not argv[0].startswith("-"):
         _refuse_mistyped_command(argv[0])

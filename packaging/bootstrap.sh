@@ -6,12 +6,13 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 # Open3D needs libusb; Qt's xcb plugin needs the xcb/xkb family; xvfb gives headless machines a
-# display for the app and the GUI tests.
+# display for the app and the GUI tests; desktop-file-validate checks the installed desktop entry
+# (tests/app/test_packaging.py).
 SYSTEM_PACKAGES=(
   libusb-1.0-0 libgl1 libegl1 libgomp1 libglib2.0-0 libdbus-1-3 libfontconfig1
   libxkbcommon0 libxkbcommon-x11-0 libxcb-cursor0 libxcb-icccm4 libxcb-image0 libxcb-keysyms1
   libxcb-randr0 libxcb-render-util0 libxcb-shape0 libxcb-xinerama0 libxcb-xkb1 libxcb-xfixes0
-  libxrender1 libxi6 libsm6 libice6 xvfb xauth
+  libxrender1 libxi6 libsm6 libice6 xvfb xauth desktop-file-utils
 )
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do
