@@ -18,8 +18,9 @@ window is reported.
 
 The view is measured alone first, then again while the control process runs on the same cores
 (``with_control_*``). The control process (the demo scene, 800 Hz, six emulated drives in their
-own process, as the app runs it: :data:`~hapticloud.app.session.APP_PROCESS_KWARGS`; idle in
-READY: drive bus I/O and the tick run, no torque) is measured twice in the same run for the same
+own process, as the app runs it:
+:data:`~hapticloud.hardware.live.session.APP_PROCESS_KWARGS`; idle in READY: drive bus I/O and
+the tick run, no torque) is measured twice in the same run for the same
 duration: alone (no GUI), then while the view is updated at full speed. Both report deadline
 misses per 10,000 ticks (:class:`~hapticloud.hardware.control.DeadlineLoop`'s statistics).
 """
@@ -36,7 +37,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 if TYPE_CHECKING:
-    from hapticloud.app.live_source import Snapshot
+    from hapticloud.hardware.live.contract import Snapshot
 
 N_POINTS = 5000
 N_FILLED = 300
@@ -53,11 +54,13 @@ class _Frames:
     """Synthetic snapshots on the demo scene's geometry, moving with time."""
 
     def __init__(self, seed: int = 0) -> None:
-        from hapticloud.app.live_source import (
+        from hapticloud.hardware.live.contract import (
             FRAME_COLUMNS,
             TICK_COLUMNS,
             History,
             LiveConfig,
+        )
+        from hapticloud.hardware.live.scenes import (
             SimSettings,
             robot_at,
             scene_geometry,
@@ -74,10 +77,10 @@ class _Frames:
         self.seq = 0
 
     def snapshot(self, t: float) -> Snapshot:
-        from hapticloud.app.live_source import CameraFrame, Snapshot, SourceState
         from hapticloud.core.fusion import FusedSurface
         from hapticloud.core.perception import ShellFit, SurfaceEstimate
         from hapticloud.core.sim import GroundTruth
+        from hapticloud.hardware.live.contract import CameraFrame, Snapshot, SourceState
 
         captured = time.monotonic()
         rng = self._rng
@@ -273,8 +276,8 @@ def measure(duration_s: float) -> dict[str, float | int]:
 
 def _control(duration_s: float, during: Any = None) -> dict[str, Any]:
     """Run the demo's control process for ``duration_s`` (or while ``during()`` runs)."""
-    from hapticloud.app.session import APP_PROCESS_KWARGS
     from hapticloud.hardware.control import ControlProcess
+    from hapticloud.hardware.live.session import APP_PROCESS_KWARGS
 
     cp = ControlProcess("demo", emulator="process", **APP_PROCESS_KWARGS)
     cp.start()
@@ -317,13 +320,14 @@ def _run_app(duration_s: float, control: bool = True) -> dict[str, Any]:
             sip.delete(app)
 
 
-def main(duration_s: float, as_json: bool, out: TextIO) -> int:
-    """Measure (under an Xvfb started here when there is no display) and print the figures."""
-    from hapticloud.app.screenshot import has_display, virtual_display
-
-    display: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
-    if not has_display():
-        display = virtual_display()
+def main(
+    duration_s: float,
+    as_json: bool,
+    out: TextIO,
+    display: contextlib.AbstractContextManager[object],
+) -> int:
+    """Measure and print the figures; the window shows on ``display`` (entered after the
+    control process was measured alone)."""
     alone = _control(duration_s)
     alone.pop("during")
     with display:

@@ -10,9 +10,9 @@ Three stacked plots on one time axis (seconds before the newest frame, so the ax
 * **perception latency (ms)**: time per stage A-E and the total, per frame of any camera.
 
 A second tab, **control loop**, plots the session's control snapshots (100 Hz, kept by
-:class:`~hapticloud.app.session.Session`): tick time (µs, newest and longest per snapshot, the
-1250 µs period dashed, a red dot where misses rose), approach velocity (m/s), constraint force
-magnitude (N) and the loop's d_proj (mm).
+:class:`~hapticloud.hardware.live.session.Session`): tick time (µs, newest and longest per
+snapshot, the 1250 µs period dashed, a red dot where misses rose), approach velocity (m/s),
+constraint force magnitude (N) and the loop's d_proj (mm).
 
 Curves are created once and fed new arrays (``setData``), never re-added; they show only the
 history window, so their cost does not grow while the source runs.
@@ -23,12 +23,11 @@ from __future__ import annotations
 import numpy as np
 import pyqtgraph as pg
 from hapticloud.core.perception import STAGES
+from hapticloud.hardware.live.contract import CONTROL_COLUMNS, SceneGeometry, Snapshot
 from numpy.typing import NDArray
 from PyQt6 import QtCore, QtWidgets
 
-from .live_source import SceneGeometry, Snapshot
 from .scene_view import CAMERA_COLOURS, FUSED_COLOUR, TRUTH_COLOUR
-from .session import CONTROL_COLUMNS
 
 STAGE_PENS = ("#8dd3c7", "#bebada", "#fb8072", "#80b1d3", "#fdb462")
 WINDOW_S = 8.0  # shown of the HISTORY_S carried

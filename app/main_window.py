@@ -18,14 +18,20 @@ from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
+from hapticloud.hardware.live.contract import (
+    LiveConfig,
+    SessionPhase,
+    Snapshot,
+    SnapshotSource,
+    SourceState,
+)
+from hapticloud.hardware.live.session import Session
 from PyQt6 import QtCore, QtGui, QtWidgets
 
 from .live_plots import LivePlots
-from .live_source import LiveConfig, Snapshot, SnapshotSource, SourceState
 from .param_panel import ParamPanel
 from .report import AppReport
 from .scene_view import CAMERA_PRESETS, COLOR_MODES, LAYERS, SceneView
-from .session import Session, SessionPhase
 from .session_panel import STATE_STYLE, SessionPanel
 from .status import StatusPanel
 
@@ -39,7 +45,7 @@ PLOT_PERIOD_S = 0.1
 ESTOP_KEYS = (QtCore.Qt.Key.Key_Escape, QtCore.Qt.Key.Key_Space)
 
 #: Builds a source for a configuration; with a session, called as ``make(config, session=attach)``
-#: (the :class:`~hapticloud.app.live_source.SessionAttach` or ``None``).
+#: (the :class:`~hapticloud.hardware.live.worker.SessionAttach` or ``None``).
 SourceFactory = Callable[..., SnapshotSource]
 SessionFactory = Callable[[], Session]
 #: Without a new perception frame, the view is still repainted this often (s) for the force arrow.

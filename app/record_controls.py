@@ -7,7 +7,8 @@ duration (refreshed 4 times a second) and an *Open recording…* action into a
 +10, started and finished on a helper thread) fed by what the display gets:
 
 * every frame the window's perception worker shows, cut to the stored rectangle in the worker
-  and carried by the display's own packet (:meth:`~.live_source.LiveSource.record_to`);
+  and carried by the display's own packet
+  (:meth:`~hapticloud.hardware.live.source.LiveSource.record_to`);
 * the control snapshots the session drains for the session panel
   (:attr:`~.session.Session.listeners`), as control states and events;
 * each parameter change, as an event.

@@ -1,9 +1,11 @@
 """A recording as a snapshot source: the window's views and plots show it at a cursor time.
 
-:class:`RecordingSource` implements the window's :class:`~.live_source.SnapshotSource` over a
+:class:`RecordingSource` implements the window's
+:class:`~hapticloud.hardware.live.contract.SnapshotSource` over a
 :class:`~hapticloud.hardware.recording.cursor.RecordingPlayer` (the cursor and its decoding
 thread, the timeline scan, the re-run process: all in the hardware layer, none of it Qt). Each
-:meth:`RecordingSource.latest` composes a :class:`~.live_source.Snapshot` from the player's
+:meth:`RecordingSource.latest` composes a :class:`~hapticloud.hardware.live.contract.Snapshot`
+from the player's
 newest decoded view, once per new view, new timeline data or new re-run rows:
 
 * every camera's newest frame at or before the cursor: its crop (what perception read) as the
@@ -28,11 +30,8 @@ from pathlib import Path
 import numpy as np
 from hapticloud.core.geometry.primitives import Box, Capsule, Primitive, Sphere
 from hapticloud.core.perception import STAGES, SurfaceEstimate
-from hapticloud.hardware.recording.cursor import CameraAt, CursorView, RecordingPlayer
-from hapticloud.hardware.recording.timeline import TimelineData
-from numpy.typing import NDArray
-
-from .live_source import (
+from hapticloud.hardware.live.contract import (
+    CONTROL_COLUMNS,
     FRAME_COLUMNS,
     HISTORY_S,
     TICK_COLUMNS,
@@ -44,7 +43,9 @@ from .live_source import (
     Snapshot,
     SourceState,
 )
-from .session import CONTROL_COLUMNS
+from hapticloud.hardware.recording.cursor import CameraAt, CursorView, RecordingPlayer
+from hapticloud.hardware.recording.timeline import TimelineData
+from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 _KINDS = {Sphere: "sphere", Capsule: "capsule", Box: "box"}
@@ -287,9 +288,9 @@ class RecordingSource:
         return History(frames, ticks)
 
     def control_history(self) -> NDArray[np.float64]:
-        """The control tab's rows (:data:`~.session.CONTROL_COLUMNS`) for the last
-        :data:`HISTORY_S` before the cursor: what the recording has of them (tick time, misses,
-        d_proj, state); approach and force are not recorded (NaN)."""
+        """The control tab's rows (:data:`~hapticloud.hardware.live.contract.CONTROL_COLUMNS`)
+        for the last :data:`HISTORY_S` before the cursor: what the recording has of them (tick
+        time, misses, d_proj, state); approach and force are not recorded (NaN)."""
         from hapticloud.hardware.control import STATE_CODES
 
         view = self.player.view

@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 from hapticloud.core.errors import RecordingError
+from hapticloud.hardware.live.contract import LiveConfig, Snapshot
 from PyQt6 import QtCore, QtGui, QtWidgets
 
 from .live_plots import LivePlots
-from .live_source import LiveConfig, Snapshot
 from .main_window import PLOT_PERIOD_S, POLL_MS, ViewControls, add_dock
 from .param_panel import ParamPanel
 from .recording_source import RecordingSource

@@ -49,7 +49,8 @@ class AppReport:
         return round(monotonic - self.t0, 4)
 
     def observe_frame(self, snap: Any, view_fps: float, now: float) -> None:
-        """One snapshot the 3D view shows now (:class:`~.live_source.Snapshot`)."""
+        """One snapshot the 3D view shows now
+        (:class:`~hapticloud.hardware.live.contract.Snapshot`)."""
         for cam in snap.cameras:
             if math.isfinite(cam.rate_hz):
                 self.rates.setdefault(cam.name, []).append(cam.rate_hz)

@@ -25,12 +25,11 @@ import numpy as np
 import pyvista as pv
 from hapticloud.core.geometry.primitives import Box, Capsule, Primitive, Sphere
 from hapticloud.core.haptics.unknown import UnknownSpaceConfig
+from hapticloud.hardware.live.contract import CameraFrame, SceneGeometry, Snapshot, SourceState
 from numpy.typing import NDArray
 from PyQt6 import QtCore, QtWidgets
 from pyvistaqt import QtInteractor
 from vtkmodules.vtkCommonMath import vtkMatrix4x4
-
-from .live_source import CameraFrame, SceneGeometry, Snapshot, SourceState
 
 FloatArray = NDArray[np.float64]
 

@@ -2,8 +2,8 @@
 
 Fed by the window's timer with the newest :class:`~hapticloud.hardware.control.ControlSnapshot`
 (:meth:`SessionPanel.show_control`, text refreshed at most every :data:`REFRESH_S`) and the
-session's alarms. The buttons call the :class:`~hapticloud.app.session.Session` (one pipe write
-each); the e-stop button calls the window's emergency stop (perception and drives).
+session's alarms. The buttons call the :class:`~hapticloud.hardware.live.session.Session` (one
+pipe write each); the e-stop button calls the window's emergency stop (perception and drives).
 """
 
 from __future__ import annotations
@@ -12,10 +12,11 @@ import math
 import time
 from typing import Any
 
+from hapticloud.hardware.live.contract import SessionPhase
+from hapticloud.hardware.live.session import Session
 from hapticloud.hardware.session.states import state_label
 from PyQt6 import QtCore, QtGui, QtWidgets
 
-from .session import Session, SessionPhase
 from .status import TIMES
 
 NO_VALUE = "\u2013"

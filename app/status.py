@@ -14,10 +14,9 @@ import math
 import time
 
 import numpy as np
+from hapticloud.hardware.live.contract import Snapshot, SourceState
 from hapticloud.hardware.session.states import state_label
 from PyQt6 import QtWidgets
-
-from .live_source import Snapshot, SourceState
 
 NO_VALUE = "\u2013"  # en dash: no value yet
 TIMES = "\u00d7"

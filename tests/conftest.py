@@ -40,7 +40,7 @@ def gui_display() -> Iterator[str]:
     pytest.importorskip("PyQt6", reason="the app extras are not installed")
     if shutil.which("Xvfb") is None:
         pytest.skip("no display and no Xvfb to start one (apt-get install xvfb)")
-    from hapticloud.app.screenshot import virtual_display
+    from hapticloud.app.commands.display import virtual_display
 
     with virtual_display() as display:
         try:

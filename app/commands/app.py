@@ -107,8 +107,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hapticloud.app.live_source import LiveConfig, SimSettings, scene_spec
     from hapticloud.app.recording_source import is_recording
+    from hapticloud.hardware.live.contract import LiveConfig
+    from hapticloud.hardware.live.scenes import SimSettings, scene_spec
 
     if is_recording(args.scene):
         from .app_recording import run_recording
@@ -124,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     elif args.no_session:
         config = LiveConfig()
     else:
-        from hapticloud.app.session import scene_tables
+        from hapticloud.hardware.live.session import scene_tables
 
         config = dataclasses.replace(LiveConfig(), **scene_tables(args.scene))
     try:
@@ -134,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     # Perception alone has no arm to move the HIP: the demo then follows its scripted reach.
     scene = "demo-path" if args.no_session and args.scene == "demo" else args.scene
     settings = SimSettings(scene=scene, speed=args.speed, decimation=args.decimation)
-    from hapticloud.app.screenshot import window_display
+    from .display import window_display
 
     display, exit_after, shot = window_display(args.screenshot, args.exit_after)
     with display:
@@ -148,10 +149,10 @@ def _run_window(
     exit_after: float | None,
     shot: Path | None,
 ) -> int:
-    from hapticloud.app.live_source import LiveSource
     from hapticloud.app.main_window import MainWindow
     from hapticloud.app.screenshot import run_window
-    from hapticloud.app.session import Session
+    from hapticloud.hardware.live.session import Session
+    from hapticloud.hardware.live.source import LiveSource
     from PyQt6 import QtWidgets
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])

@@ -46,8 +46,8 @@ def add_recording_options(parser: argparse.ArgumentParser) -> None:
 def recording_config(player: Any, args: argparse.Namespace) -> Any:
     """The panel's parameters: the recording's own, then ``--preset``'s perception and fusion,
     then ``--set``."""
-    from hapticloud.app.live_source import LiveConfig
     from hapticloud.app.recording_source import recorded_live_config
+    from hapticloud.hardware.live.contract import LiveConfig
 
     config = recorded_live_config(player)
     if args.preset:
@@ -76,7 +76,7 @@ def run_recording(args: argparse.Namespace) -> int:
             player.seek(player.start_s + args.at)
         if args.speed != 1.0:
             player.set_speed(args.speed)
-        from hapticloud.app.screenshot import window_display
+        from .display import window_display
 
         display, exit_after, shot = window_display(args.screenshot, args.exit_after)
     except BaseException:

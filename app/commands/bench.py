@@ -203,7 +203,9 @@ def run_loop(args: argparse.Namespace) -> int:
 def run_gui(args: argparse.Namespace) -> int:
     from hapticloud.app import bench_gui
 
-    return bench_gui.main(args.duration, args.json, sys.stdout)
+    from .display import any_display
+
+    return bench_gui.main(args.duration, args.json, sys.stdout, any_display())
 
 
 def run_safety(args: argparse.Namespace) -> int:
@@ -297,7 +299,6 @@ def _register_seek(studies: argparse._SubParsersAction) -> None:
     seek.add_argument("--json", action="store_true", help="print one JSON object")
 
     def run_seek(args: argparse.Namespace) -> int:
-        import contextlib
         import json
 
         from hapticloud.hardware.recording.seek_bench import seek_bench, seek_lines
@@ -306,12 +307,10 @@ def _register_seek(studies: argparse._SubParsersAction) -> None:
         result = seek_bench(args.file, args.seeks, args.seed, say)
         if args.gui:
             from hapticloud.app.recording_bench import gui_seek_bench
-            from hapticloud.app.screenshot import has_display, virtual_display
 
-            display: contextlib.AbstractContextManager[object] = (
-                contextlib.nullcontext() if has_display() else virtual_display()
-            )
-            with display:
+            from .display import any_display
+
+            with any_display():
                 result["gui"] = gui_seek_bench(args.file, min(args.seeks, 30), args.seed)
                 from PyQt6 import QtWidgets, sip
 

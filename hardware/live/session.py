@@ -1,8 +1,8 @@
-"""The supervised hardware session, GUI side: the control process's handle and its telemetry.
+"""The supervised hardware session: the control process's handle and its telemetry, for a GUI.
 
 The app runs the 800 Hz control process (:class:`~hapticloud.hardware.control.ControlProcess`,
-six emulated drives in their own process) beside the perception worker. This module owns the
-handle in the GUI process; no Qt here.
+six emulated drives in their own process) beside the perception worker. :class:`Session` is
+the handle the GUI process holds; no Qt here.
 
 * :meth:`Session.start` starts the control process on a helper thread (it takes ~1.5 s to come
   up) and returns at once; :attr:`Session.phase` goes STARTING -> RUNNING, or FAILED with the
@@ -20,62 +20,27 @@ handle in the GUI process; no Qt here.
 
 from __future__ import annotations
 
-import enum
 import math
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from hapticloud.hardware.control import STATE_CODES
 from numpy.typing import NDArray
 
-from .live_source import HISTORY_S, SessionAttach, _Ring
+from .contract import CONTROL_COLUMNS, HISTORY_S, Alarm, SessionPhase
+from .source import HistoryRing
+from .worker import SessionAttach
 
-#: History columns, one row per control snapshot (100 Hz).
-CONTROL_COLUMNS = (
-    "t",
-    "tick_us",
-    "tick_us_max",
-    "misses",
-    "approach_mps",
-    "force_n",
-    "d_proj_mm",
-    "state",
-)
 #: Snapshots per second the control process publishes (800 Hz / 8).
 SNAPSHOT_RATE_HZ = 100.0
 #: Alarms kept (newest first in the panel).
 MAX_ALARMS = 200
 #: The scene files of the app's built-in scenes, for the control process.
 CONTROL_SCENES = {"demo": "demo"}
-
-
-class SessionPhase(enum.Enum):
-    """Life cycle of the control process as the app sees it."""
-
-    STARTING = "starting"
-    RUNNING = "running"
-    FAILED = "failed"
-    CLOSED = "closed"
-
-
-@dataclass(frozen=True, slots=True)
-class Alarm:
-    """One line of the alarms list: ``t`` is time.monotonic (s), ``kind`` ``"state"``,
-    ``"reaction"`` or ``"app"``."""
-
-    t: float
-    kind: str
-    text: str
-
-    def clock(self) -> str:
-        """Wall-clock time of day, ms."""
-        wall = self.t + (time.time() - time.monotonic())
-        return time.strftime("%H:%M:%S", time.localtime(wall)) + f".{int(1e3 * (wall % 1)):03d}"
 
 
 def default_dynamics(scene: str) -> Any:
@@ -153,7 +118,7 @@ class Session:
         self.received = 0
         self.lost = 0  # gaps in the snapshots' seq (sent but not seen: none expected)
         self.result: dict[str, Any] | None = None
-        self._ring = _Ring(int(HISTORY_S * SNAPSHOT_RATE_HZ) + 1, len(CONTROL_COLUMNS))
+        self._ring = HistoryRing(int(HISTORY_S * SNAPSHOT_RATE_HZ) + 1, len(CONTROL_COLUMNS))
         #: Called with every batch of drained snapshots (the app's recorder; GUI thread).
         self.listeners: list[Callable[[list[Any]], None]] = []
 

@@ -6,15 +6,10 @@ import time
 
 import numpy as np
 import pytest
-from hapticloud.app.live_source import (
-    FRAME_COLUMNS,
-    TICK_COLUMNS,
-    LiveConfig,
-    LiveSource,
-    SimSettings,
-    SourceState,
-)
 from hapticloud.core.errors import ConfigError
+from hapticloud.hardware.live.contract import FRAME_COLUMNS, TICK_COLUMNS, LiveConfig, SourceState
+from hapticloud.hardware.live.scenes import SimSettings
+from hapticloud.hardware.live.source import LiveSource
 
 # 424x240 cameras: the same scene, four times cheaper to simulate (tests share 2 cores).
 FAST = SimSettings(decimation=2)
@@ -102,9 +97,9 @@ def test_errors_against_truth_are_small_on_the_demo(source: LiveSource) -> None:
 
 
 def test_a_session_robot_fills_the_geometry_slots_with_the_links():
-    from hapticloud.app.live_source import SimSettings, scene_geometry, session_robot
     from hapticloud.core.geometry.primitives import Capsule, Sphere
     from hapticloud.core.robot import RobotModel
+    from hapticloud.hardware.live.scenes import SimSettings, scene_geometry, session_robot
 
     model = RobotModel.load()
     q = model.q_home
@@ -118,8 +113,8 @@ def test_a_session_robot_fills_the_geometry_slots_with_the_links():
 
 
 def test_scene_files_open_in_the_app_and_bad_ones_say_why():
-    from hapticloud.app.live_source import SimSettings, scene_spec
     from hapticloud.core.errors import ConfigError
+    from hapticloud.hardware.live.scenes import SimSettings, scene_spec
 
     spec = scene_spec("impacts")  # a shipped scene file
     scene = spec.build(decimation=4)

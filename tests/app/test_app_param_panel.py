@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from hapticloud.app.live_source import LiveConfig
 from hapticloud.app.param_panel import (
     BoolEditor,
     ChoiceEditor,
@@ -16,6 +15,7 @@ from hapticloud.app.param_panel import (
     pretty_name,
     slider_span,
 )
+from hapticloud.hardware.live.contract import LiveConfig
 
 pytestmark = pytest.mark.usefixtures("qapp")
 

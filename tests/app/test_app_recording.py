@@ -211,9 +211,10 @@ def test_app_refuses_to_record_a_recording(synth: Path, capsys) -> None:
 
 
 def test_record_button_records_what_the_live_window_shows(qtbot, tmp_path: Path) -> None:
-    from hapticloud.app.live_source import LiveSource, SimSettings
     from hapticloud.app.main_window import MainWindow
     from hapticloud.app.record_controls import install_record_controls
+    from hapticloud.hardware.live.scenes import SimSettings
+    from hapticloud.hardware.live.source import LiveSource
     from hapticloud.hardware.recording.reader import Recording
 
     win = MainWindow(lambda cfg: LiveSource(SimSettings(decimation=2), cfg), title="demo")

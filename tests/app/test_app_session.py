@@ -7,9 +7,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from hapticloud.app.live_source import LiveSource, SimSettings
 from hapticloud.app.main_window import MainWindow
-from hapticloud.app.session import Session, SessionPhase
+from hapticloud.hardware.live.contract import SessionPhase
+from hapticloud.hardware.live.scenes import SimSettings
+from hapticloud.hardware.live.session import Session
+from hapticloud.hardware.live.source import LiveSource
 from PyQt6 import QtCore
 
 FAST = SimSettings(decimation=2)
@@ -107,8 +109,8 @@ def test_escape_emergency_stops_the_session(supervised) -> None:
 
 
 def test_the_control_tabs_start_from_the_scene_tables():
-    from hapticloud.app.session import scene_tables
     from hapticloud.core.scene import load_scene
+    from hapticloud.hardware.live.session import scene_tables
 
     tables = scene_tables("demo")
     scene = load_scene("demo")

@@ -13,9 +13,11 @@ import time
 
 import numpy as np
 import pytest
-from hapticloud.app.live_source import LiveSource, SimSettings, Snapshot
 from hapticloud.app.scene_view import SceneView
 from hapticloud.core.perception import ShellFit
+from hapticloud.hardware.live.contract import Snapshot
+from hapticloud.hardware.live.scenes import SimSettings
+from hapticloud.hardware.live.source import LiveSource
 
 N_POINTS = 5000
 N_UPDATES = 150

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hapticloud.app.live_source import LiveSource, SimSettings, SourceState
 from hapticloud.app.main_window import MainWindow
 from hapticloud.app.param_panel import NumberEditor
 from hapticloud.app.scene_view import CAMERA_COLOURS
 from hapticloud.app.screenshot import grab_window, qimage_to_array
+from hapticloud.hardware.live.contract import SourceState
+from hapticloud.hardware.live.scenes import SimSettings
+from hapticloud.hardware.live.source import LiveSource
 from PyQt6 import QtCore, QtWidgets
 
 FAST = SimSettings(decimation=2)  # the demo scene at 424x240: 4x cheaper to simulate

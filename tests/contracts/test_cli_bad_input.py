@@ -39,9 +39,9 @@ def _refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
 @pytest.fixture
 def no_runs(monkeypatch: pytest.MonkeyPatch) -> None:
     """Any run started is a failure: the checks must refuse before it."""
-    from hapticloud.app import live_source
     from hapticloud.core.studies import loop_bench, perception, run
     from hapticloud.hardware.control import bench
+    from hapticloud.hardware.live import scenes
     from hapticloud.hardware.session import run as session
 
     def started(*_args: object, **_kwargs: object) -> None:
@@ -53,7 +53,7 @@ def no_runs(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(perception, "run_study", started)
     monkeypatch.setattr(loop_bench, "main", started)
     monkeypatch.setattr(bench, "main", started)
-    monkeypatch.setattr(live_source, "scene_spec", started)
+    monkeypatch.setattr(scenes, "scene_spec", started)
 
 
 @pytest.fixture
