@@ -49,6 +49,7 @@ from .control import (
 )
 from .control.controller import StepInputs
 from .control.reductions import finite_total, or_reduce
+from .control.tasks import JointLimitCheck
 from .errors import InputError
 from .fusion import FusedSurface, SurfaceFusion
 from .haptics import (
@@ -63,7 +64,8 @@ from .haptics import (
     VelocityConstraintConfig,
     haptic_state,
 )
-from .haptics.distance import check_dt
+from .haptics.distance import check_dt, trusted_haptic_state
+from .haptics.force import mass_factor
 from .haptics.unknown import (
     SpaceState,
     SurfaceGuard,
@@ -178,16 +180,24 @@ class Wall(NamedTuple):
         return x - (self.normal @ (x - self.point)) * self.normal
 
 
-class _Limits(NamedTuple):
-    """Levels 1-2 bounds of the exact shortcut, per controller (see ``_shortcut_limits``)."""
+class _Space(NamedTuple):
+    """What one tick knows of the space around the HIP (:meth:`HapticLoop._space_around`)."""
 
-    tau: list[float]
-    horizon: float
-    half_horizon_sq: float
-    q_hi: list[float]
-    q_lo: list[float]
-    v_horizon: float
-    v: list[float]
+    surface: SurfacePoint | None  # the fused surface, the guard's held one, or none
+    hold_q: FloatArray | None  # the joint position to hold while stopped
+    state: SpaceState
+    fused_ok: bool  # the fusion gave a valid surface this tick
+
+
+class _SurfaceRows(NamedTuple):
+    """The surfaces' rows of one tick (:meth:`HapticLoop._surface_rows`)."""
+
+    n_rows: int  # haptic rows written into the buffer
+    factor: FloatArray | None  # Cholesky factor of M, if a force row needed it
+    normals: list[FloatArray]  # of the surfaces in reach
+    d_min: float  # free distance of the nearest surface (m; the clearance included)
+    approach: float  # its approach speed (m/s)
+    nearest: int  # which surface (TickResult.nearest)
 
 
 class TickResult(NamedTuple):
@@ -313,7 +323,7 @@ class HapticLoop:
         self._G = np.zeros((capacity, 2 * n))
         self._h = np.zeros(capacity)
         self._kind = [0] * capacity
-        self._m_prev = 0
+        self._rows_written = 0
         # As float arrays (a Wall built directly may hold lists): the tick's products need them.
         self._wall_surfaces = [
             SurfacePoint(_float_array(w.point), _float_array(w.normal), _ZERO3, w.part)
@@ -333,7 +343,7 @@ class HapticLoop:
         #: constraint's own bound; ``None``: none. A session's watchdog sets it to v_min while it
         #: holds a surface it can no longer see (a stale camera or estimate).
         self.approach_limit_mps: float | None = None
-        self._limits: _Limits | None = None
+        self._limits: JointLimitCheck | None = None
         self._limits_for: HierarchicalController | None = None
         from .robot import RobotModel  # pinocchio: loaded by the model's owner already
 
@@ -431,150 +441,20 @@ class HapticLoop:
         TickResult
         """
         t0 = time.perf_counter()
-        robot = self.robot
-        robot.update(q, qd)
-        # HipState.from_model without re-checking the radius (checked once, in __init__). The
-        # constraints keep the HIP sphere grown by the clearance out of the surface: the fused
-        # surface is ~0.5 mm off at contact, which the radius alone would let through.
-        clearance = self.config.clearance_m
-        hip = HipState(
-            robot.hip_position(),
-            robot.qd,
-            robot.hip_jacobian(),
-            robot.hip_jdot_qd(),
-            robot.mass_matrix(),
-            robot.nonlinear_effects(),
-            self.hip_radius_m + clearance,
-        )
-        perceived = fused is not None or self.fusion is not None
-        if fused is None and self.fusion is not None:
-            fused = self.fusion.sample(t)
-        self.last_fused = fused
-        fused_ok = fused is not None and fused.valid
-        primary, hold_q, space = None, None, SpaceState.KNOWN
-        self._cap = self.approach_limit_mps
-        unknown_cfg = self.config.unknown
-        if perceived:
-            known, age = None, 0.0
-            if fused_ok:
-                centroid, normal, velocity = fused.centroid, fused.normal, fused.velocity
-                if type(fused) is not FusedSurface:  # the fusion's own are float arrays already
-                    centroid, normal = _float_array(centroid), _float_array(normal)
-                    velocity = _float_array(velocity)
-                known = SurfacePoint(centroid, normal, velocity, self.fused_region)
-                age = fused.age_s
-            why, free = "no fused surface", False
-            if fused is not None and known is None:
-                why = fused.reason
-                free = free_proof_holds(
-                    getattr(fused, "free_m", 0.0),
-                    getattr(fused, "free_hip", None),
-                    hip.position,
-                    hip.radius_m,
-                    unknown_cfg,
-                )
-            decision = self.guard.step(t, known, robot.q, why, free, age)
-            primary, hold_q, space = decision.surface, decision.hold_q, decision.state
-            cap = decision.approach_limit_mps
-            if cap is not None and (self._cap is None or cap < self._cap):
-                self._cap = cap
-        surfaces = self.surfaces(hip.position, primary)
-        M, h = hip.mass_matrix, hip.nonlinear_effects
+        hip = self._hip_state(q, qd)
+        space = self._space_around(t, hip, fused)
         tau_int = None if interaction_torque is None else np.asarray(interaction_torque, float)
-
-        cfg = self.config
-        n = self.n_joints
-        G, hv, kind = self._G, self._h, self._kind
-        if self._m_prev:
-            G[: self._m_prev] = 0.0  # rows are written sparsely below; clear last tick's
-        m = 0
-        factor = None
-        normals: list[FloatArray] = []
-        d_min, approach, nearest = math.inf, 0.0, -1
-        ff_v = cfg.velocity.surface_velocity_feedforward
-        for i, surface in enumerate(surfaces):
-            hs = _haptic_state(hip, surface)
-            d = hs.d_proj
-            if d < d_min:
-                d_min, nearest = d, i + (0 if primary is not None else 1)
-                approach = -(hs.d_dot_robot + (hs.d_dot_surface if ff_v else 0.0))
-            if d > self._act_motion and not (
-                cfg.force_enabled and d <= cfg.force.activation_distance_m
-            ):
-                continue
-            normals.append(hs.normal)
-            bound, bits = self._motion_bound(hs)
-            if bits:
-                np.negative(hs.J_c, out=G[m, :n])
-                hv[m] = bound
-                kind[m] = bits
-                m += 1
-            if cfg.force_enabled and d <= cfg.force.activation_distance_m:
-                if factor is None:
-                    factor = _cholesky(M)
-                w, _ = lapack.dpotrs(factor, hs.J_c, lower=False)
-                mu = float(hs.J_c.dot(w))
-                np.negative(w, out=G[m, n:])
-                hv[m] = mu * self._force_limit[surface.body_region] - float(w.dot(h)) + hs.Jdc_qd
-                kind[m] = FORCE
-                m += 1
-        n_haptic = m
-        # The level-5 optimum's accelerations: what the robot does where no constraint binds.
-        ctrl_cfg = self.controller.config
-        transparent = cfg.transparent and hold_q is None
-        if hold_q is not None:
-            qdd5 = hold_acceleration(robot.q, hip.qd, hold_q, cfg.unknown)
-        elif not cfg.transparent:
-            qdd5 = -ctrl_cfg.min_acceleration.damping_1_per_s * hip.qd
-        elif tau_int is None:
-            qdd5 = None  # zero
-        else:
-            if factor is None:
-                factor = _cholesky(M)
-            # tau = h leaves M qdd = tau_int: the free acceleration of the patient's push.
-            scale = ctrl_cfg.equation_of_motion.interaction_torque_scale
-            qdd5, _ = lapack.dpotrs(factor, scale * tau_int, lower=False)
-        if normals and cfg.frictionless:
-            m = self._tangential_rows(hip.jacobian, normals, qdd5, m)
-        self._m_prev = m
-        # In a contact the solver is needed tick after tick: while the last tick needed it and
-        # haptic rows are still there, skip the shortcut's check (~5-15 µs) and solve directly.
-        try_shortcut = cfg.exact_shortcut and not (self._solved_last and n_haptic)
-        out = self._shortcut(hip, qdd5, tau_int, m, transparent) if try_shortcut else None
-        if out is None:
-            rows = [Inequality(G[:m], hv[:m], "haptic")] if m else []
-            if hold_q is not None:
-                motion: Equality | None = Equality(self._a_hold, qdd5, "position hold")
-            elif transparent:
-                motion = Equality(self._a_tau, h, "transparency")
-            else:
-                motion = None
-            # The controller's step without re-converting what the robot model validated (float
-            # arrays of the right shapes, dt checked in __init__); its checks on values stay.
-            step = self.controller._step_checked if self._trusted else self._step_public
-            inputs = StepInputs(
-                robot.q,
-                robot.qd,
-                M,
-                h,
-                self.dt,
-                hip.position,
-                hip.jacobian,
-                hip.jdot_qd,
-                rows,
-                (),
-                motion,
-                tau_int,
-            )
-            out = step(time.perf_counter(), inputs)
-            # Relaxed: a constraint bound (level 5 gave way), so the next tick likely solves too.
-            self._solved_last = out.status is not ControlStatus.OK
-        else:
-            self._solved_last = False
+        found = self._surface_rows(hip, space.surface)
+        qdd5 = self._level5_acceleration(hip, space.hold_q, tau_int, found.factor)
+        m = found.n_rows
+        if found.normals and self.config.frictionless:
+            m = self._tangential_rows(hip.jacobian, found.normals, qdd5, m)
+        self._rows_written = m
+        out = self._control(hip, qdd5, tau_int, space.hold_q, m, found.n_rows)
         present = 0
-        for j in range(n_haptic):
-            present |= kind[j]
-        self._n_haptic = n_haptic
+        for bits in self._kind[: found.n_rows]:
+            present |= bits
+        self._n_haptic = found.n_rows
         self._last_x = (out.qdd, out.tau)
         violation = float(out.level_slack[3])
         if not math.isfinite(violation):
@@ -583,18 +463,190 @@ class HapticLoop:
             out.tau,
             out.qdd,
             out.status,
-            d_min + clearance,
-            approach,
-            nearest,
+            found.d_min + self.config.clearance_m,
+            found.approach,
+            found.nearest,
             present & (POSITIONAL | VELOCITY | FORCE),
             violation,
-            fused_ok,
+            space.fused_ok,
             out.solve_us,
             out.step_us,
             (time.perf_counter() - t0) * 1e6,
             out.clamped,
-            space,
+            space.state,
         )
+
+    def _hip_state(self, q: ArrayLike, qd: ArrayLike) -> HipState:
+        """``robot.update(q, qd)`` and the HIP's state, its sphere grown by the clearance.
+
+        :meth:`HipState.from_model` without re-checking the radius (checked once, in __init__).
+        The constraints keep the HIP sphere grown by the clearance out of the surface: the fused
+        surface is ~0.5 mm off at contact, which the radius alone would let through.
+        """
+        robot = self.robot
+        robot.update(q, qd)
+        return HipState(
+            robot.hip_position(),
+            robot.qd,
+            robot.hip_jacobian(),
+            robot.hip_jdot_qd(),
+            robot.mass_matrix(),
+            robot.nonlinear_effects(),
+            self.hip_radius_m + self.config.clearance_m,
+        )
+
+    def _space_around(self, t: float, hip: HipState, fused: FusedSurface | None) -> _Space:
+        """What the tick knows of the space around the HIP: the fused surface, or the guard's
+        decision without one (hold the last surface, then stop); sets :attr:`last_fused` and the
+        approach-speed cap of this tick (:attr:`approach_limit_mps`, tightened by the guard)."""
+        perceived = fused is not None or self.fusion is not None
+        if fused is None and self.fusion is not None:
+            fused = self.fusion.sample(t)
+        self.last_fused = fused
+        fused_ok = fused is not None and fused.valid
+        self._cap = self.approach_limit_mps
+        if not perceived:
+            return _Space(None, None, SpaceState.KNOWN, fused_ok)
+        known, age = None, 0.0
+        if fused_ok:
+            centroid, normal, velocity = fused.centroid, fused.normal, fused.velocity
+            if type(fused) is not FusedSurface:  # the fusion's own are float arrays already
+                centroid, normal = _float_array(centroid), _float_array(normal)
+                velocity = _float_array(velocity)
+            known = SurfacePoint(centroid, normal, velocity, self.fused_region)
+            age = fused.age_s
+        why, free = "no fused surface", False
+        if fused is not None and known is None:
+            why = fused.reason
+            free = free_proof_holds(
+                getattr(fused, "free_m", 0.0),
+                getattr(fused, "free_hip", None),
+                hip.position,
+                hip.radius_m,
+                self.config.unknown,
+            )
+        decision = self.guard.step(t, known, self.robot.q, why, free, age)
+        cap = decision.approach_limit_mps
+        if cap is not None and (self._cap is None or cap < self._cap):
+            self._cap = cap
+        return _Space(decision.surface, decision.hold_q, decision.state, fused_ok)
+
+    def _surface_rows(self, hip: HipState, primary: SurfacePoint | None) -> _SurfaceRows:
+        """Each surface's rows into the buffer: the shared motion row (positional and velocity,
+        :meth:`_motion_bound`) and the force row, from the constraints' kernels; and the
+        nearest surface's distance and approach speed (telemetry)."""
+        cfg = self.config
+        n = self.n_joints
+        G, hv, kind = self._G, self._h, self._kind
+        if self._rows_written:
+            G[: self._rows_written] = 0.0  # rows are written sparsely below; clear last tick's
+        m = 0
+        factor = None
+        normals: list[FloatArray] = []
+        d_min, approach, nearest = math.inf, 0.0, -1
+        ff_v = cfg.velocity.surface_velocity_feedforward
+        force_reach = cfg.force.activation_distance_m if cfg.force_enabled else -math.inf
+        first = 0 if primary is not None else 1
+        for i, surface in enumerate(self.surfaces(hip.position, primary)):
+            hs = trusted_haptic_state(hip, surface)
+            if not math.isfinite(hs.d_proj + hs.Jdc_qd + hs.d_dot_robot + hs.d_dot_surface):
+                hs = haptic_state(hip, surface)  # names the culprit
+            d = hs.d_proj
+            if d < d_min:
+                d_min, nearest = d, i + first
+                approach = -hs.distance_rate(ff_v)
+            if d > self._act_motion and not d <= force_reach:
+                continue
+            normals.append(hs.normal)
+            bound, bits = self._motion_bound(hs)
+            if bits:
+                np.negative(hs.J_c, out=G[m, :n])
+                hv[m] = bound
+                kind[m] = bits
+                m += 1
+            if d <= force_reach:
+                if factor is None:
+                    factor = mass_factor(hip.mass_matrix, "mass_matrix")
+                limit = self._force_limit[surface.body_region]
+                w, hv[m] = self.force.bound(hs, factor, hip.nonlinear_effects, limit)
+                np.negative(w, out=G[m, n:])
+                kind[m] = FORCE
+                m += 1
+        return _SurfaceRows(m, factor, normals, d_min, approach, nearest)
+
+    def _level5_acceleration(
+        self,
+        hip: HipState,
+        hold_q: FloatArray | None,
+        tau_int: FloatArray | None,
+        factor: FloatArray | None,
+    ) -> FloatArray | None:
+        """The level-5 optimum's accelerations: what the robot does where no constraint binds
+        (``None`` for zero: transparent without a measured push)."""
+        cfg = self.config
+        if hold_q is not None:
+            return hold_acceleration(self.robot.q, hip.qd, hold_q, cfg.unknown)
+        ctrl_cfg = self.controller.config
+        if not cfg.transparent:
+            return -ctrl_cfg.min_acceleration.damping_1_per_s * hip.qd
+        if tau_int is None:
+            return None
+        if factor is None:
+            factor = mass_factor(hip.mass_matrix, "mass_matrix")
+        # tau = h leaves M qdd = tau_int: the free acceleration of the patient's push.
+        scale = ctrl_cfg.equation_of_motion.interaction_torque_scale
+        qdd5, _ = lapack.dpotrs(factor, scale * tau_int, lower=False)
+        return qdd5
+
+    def _control(
+        self,
+        hip: HipState,
+        qdd5: FloatArray | None,
+        tau_int: FloatArray | None,
+        hold_q: FloatArray | None,
+        m: int,
+        n_haptic: int,
+    ) -> ControlOutput:
+        """The controller's answer for the ``m`` rows in the buffer: the exact shortcut's, or the
+        solve's (:meth:`~HierarchicalController.step_trusted` for the shipped model's state)."""
+        cfg = self.config
+        transparent = cfg.transparent and hold_q is None
+        # In a contact the solver is needed tick after tick: while the last tick needed it and
+        # haptic rows are still there, skip the shortcut's check (~5-15 µs) and solve directly.
+        try_shortcut = cfg.exact_shortcut and not (self._solved_last and n_haptic)
+        out = self._shortcut(hip, qdd5, tau_int, m, transparent) if try_shortcut else None
+        if out is not None:
+            self._solved_last = False
+            return out
+        rows = [Inequality(self._G[:m], self._h[:m], "haptic")] if m else []
+        if hold_q is not None:
+            motion: Equality | None = Equality(self._a_hold, qdd5, "position hold")
+        elif transparent:
+            motion = Equality(self._a_tau, hip.nonlinear_effects, "transparency")
+        else:
+            motion = None
+        # The controller's step without re-converting what the robot model validated (float
+        # arrays of the right shapes, dt checked in __init__); its checks on values stay.
+        step = self.controller.step_trusted if self._trusted else self._step_public
+        robot = self.robot
+        inputs = StepInputs(
+            robot.q,
+            robot.qd,
+            hip.mass_matrix,
+            hip.nonlinear_effects,
+            self.dt,
+            hip.position,
+            hip.jacobian,
+            hip.jdot_qd,
+            rows,
+            (),
+            motion,
+            tau_int,
+        )
+        out = step(time.perf_counter(), inputs)
+        # Relaxed: a constraint bound (level 5 gave way), so the next tick likely solves too.
+        self._solved_last = out.status is not ControlStatus.OK
+        return out
 
     def _step_public(self, t0: float, inputs: StepInputs) -> ControlOutput:
         """The controller's checked :meth:`~HierarchicalController.step`, for any other robot."""
@@ -634,7 +686,8 @@ class HapticLoop:
         """
         t0 = time.perf_counter()
         ctrl = self.controller
-        lim = self._limits if self._limits_for is ctrl else self._shortcut_limits(ctrl)
+        if self._limits_for is not ctrl:
+            self._limits, self._limits_for = ctrl.limit_check(self.dt, _SHORTCUT_TOL), ctrl
         qd = hip.qd
         M, h = hip.mass_matrix, hip.nonlinear_effects
         qdd = np.zeros(self.n_joints) if qdd5 is None else qdd5
@@ -657,25 +710,9 @@ class HapticLoop:
                 if gx > hj + tol * (1.0 + abs(hj)):
                     return None
         # Levels 1-2 checked from the tasks' definitions, joint by joint (cheaper than building
-        # their rows): |tau| <= scale tau_max; q + T qd + T^2/2 qdd within the position limits;
-        # |qd + T_v qdd| <= v_max; then each fixed wall's prediction.
-        T, half_T2, Tv = lim.horizon, lim.half_horizon_sq, lim.v_horizon
-        for tau_i, q_i, qd_i, qdd_i, tau_max, q_hi, q_lo, v_max in zip(
-            tau.tolist(),
-            self.robot.q.tolist(),
-            qd.tolist(),
-            qdd.tolist(),
-            lim.tau,
-            lim.q_hi,
-            lim.q_lo,
-            lim.v,
-            strict=True,
-        ):
-            if abs(tau_i) > tau_max:
-                return None
-            q_pred = q_i + T * qd_i + half_T2 * qdd_i
-            if q_pred > q_hi or q_pred < q_lo or abs(qd_i + Tv * qdd_i) > v_max:
-                return None
+        # their rows); then each fixed wall's rows.
+        if not self._limits.admits(tau.tolist(), self.robot.q.tolist(), qd.tolist(), qdd.tolist()):
+            return None
         if ctrl.walls is not None:
             w = ctrl.walls.rows(hip.position, hip.jacobian, hip.jdot_qd, qd, self.dt)
             if w.h.shape[0] and or_reduce(w.G @ x > w.h + _SHORTCUT_TOL * (1.0 + np.abs(w.h))):
@@ -690,29 +727,6 @@ class HapticLoop:
             (time.perf_counter() - t0) * 1e6,
             "",
         )
-
-    def _shortcut_limits(self, ctrl: HierarchicalController) -> _Limits:
-        """The bounds :meth:`_shortcut` compares with, for ``ctrl`` (rebuilt when it changes).
-
-        Each is the very expression the check used to evaluate per tick (same rounding).
-        """
-        dt = self.dt
-        tl = ctrl.torque_limit
-        pl = ctrl.position_limit
-        T = pl.horizon_s(dt)
-        margin = pl.config.margin_rad
-        vl = ctrl.velocity_limit
-        lim = _Limits(
-            (tl.config.scale * tl.tau_max * (1.0 + _SHORTCUT_TOL)).tolist(),
-            T,
-            0.5 * T * T,
-            (pl.q_max - margin + _SHORTCUT_TOL).tolist(),
-            (pl.q_min + margin - _SHORTCUT_TOL).tolist(),
-            max(vl.config.horizon_s, dt),
-            (vl.v_max + _SHORTCUT_TOL).tolist(),
-        )
-        self._limits, self._limits_for = lim, ctrl
-        return lim
 
     def last_binding(self) -> int:
         """Which constraints bound the last tick's solution (bits as ``TickResult.rows``).
@@ -747,25 +761,17 @@ class HapticLoop:
         dt = self.dt
         d = hs.d_proj
         bound, bits, which = math.inf, 0, 0
-        pc = cfg.positional
-        if cfg.positional_enabled and d <= pc.activation_distance_m:
-            horizon = pc.kp * dt
-            d_dot = hs.d_dot_robot + (hs.d_dot_surface if pc.surface_velocity_feedforward else 0.0)
-            bound = 2.0 * (d + horizon * d_dot) / (horizon * horizon) + hs.Jdc_qd
+        if cfg.positional_enabled and d <= cfg.positional.activation_distance_m:
+            bound = self.positional.bound(hs, dt)
             bits, which = POSITIONAL, POSITIONAL
-        vc = cfg.velocity
-        if cfg.velocity_enabled and d <= vc.activation_distance_m:
-            gain_time = vc.kv * dt
-            d_dot = hs.d_dot_robot + (hs.d_dot_surface if vc.surface_velocity_feedforward else 0.0)
-            b_v = (vc.bound(d) + d_dot) / gain_time + hs.Jdc_qd
+        if cfg.velocity_enabled and d <= cfg.velocity.activation_distance_m:
+            b_v = self.velocity.bound(hs, dt)
             bits |= VELOCITY
             if b_v < bound:
                 bound, which = b_v, VELOCITY
         cap = self._cap
         if cap is not None:
-            gain_time = vc.kv * dt
-            d_dot = hs.d_dot_robot + (hs.d_dot_surface if vc.surface_velocity_feedforward else 0.0)
-            b_c = (max(cap, 0.0) + d_dot) / gain_time + hs.Jdc_qd
+            b_c = self.velocity.bound(hs, dt, max(cap, 0.0))
             bits |= VELOCITY
             if b_c < bound:
                 bound, which = b_c, VELOCITY
@@ -827,14 +833,6 @@ def _float_array(value: ArrayLike) -> FloatArray:
     return np.asarray(value, dtype=np.float64)
 
 
-def _cholesky(M: FloatArray) -> FloatArray:
-    # LAPACK directly: ~2 µs against ~15 µs for numpy's checked solve.
-    factor, info = lapack.dpotrf(M, lower=False)
-    if info != 0:
-        raise InputError("mass_matrix: must be symmetric positive definite")
-    return factor
-
-
 def _tangents(normal: FloatArray) -> FloatArray:
     """Two unit vectors spanning the plane orthogonal to the unit ``normal``, shape (2, 3)."""
     # Cross with the world axis least aligned with n (never parallel, so never ~zero); written
@@ -876,31 +874,6 @@ def admit(est: SurfaceEstimate, min_quality: float, fuse_fallbacks: bool = False
     if est.quality < min_quality:
         return False
     return fuse_fallbacks or not is_fallback(est)
-
-
-def _haptic_state(hip: HipState, surface: SurfacePoint) -> HapticState:
-    """:func:`~hapticloud.core.haptics.haptic_state` without its argument checks.
-
-    The tick's inputs are already validated: the robot model checks ``q`` and ``qd``, the fusion
-    and the walls hand out finite unit normals. Skipping the checks saves ~10 µs per surface;
-    a non-finite result still goes through the checked function, which names the culprit.
-    """
-    n = surface.normal
-    J_c = n.dot(hip.jacobian)
-    d_dot_robot = float(J_c.dot(hip.qd))
-    state = HapticState(
-        float((hip.position - surface.centroid).dot(n)) - hip.radius_m,
-        J_c,
-        float(n.dot(hip.jdot_qd)),
-        d_dot_robot,
-        -float(n.dot(surface.velocity)),
-        hip.qd,
-        n,
-        surface.velocity,
-    )
-    if not math.isfinite(state.d_proj + state.Jdc_qd + d_dot_robot + state.d_dot_surface):
-        return haptic_state(hip, surface)
-    return state
 
 
 def build_controller(

@@ -53,6 +53,7 @@ from .tasks import (
     EquationOfMotionConfig,
     FixedWalls,
     FixedWallsConfig,
+    JointLimitCheck,
     JointPositionLimit,
     JointPositionLimitConfig,
     JointVelocityLimit,
@@ -61,8 +62,7 @@ from .tasks import (
     MinimizeAccelerationConfig,
     TorqueLimit,
     TorqueLimitConfig,
-    _array,
-    _period,
+    shaped_array,
 )
 
 FloatArray = NDArray[np.float64]
@@ -376,7 +376,7 @@ class HierarchicalController:
             hip_jdot_qd = np.asarray(hip_jdot_qd, dtype=np.float64)
         if interaction_torque is not None:
             interaction_torque = np.asarray(interaction_torque, dtype=np.float64)
-        return self._step_checked(
+        return self.step_trusted(
             t0,
             StepInputs(
                 q,
@@ -394,7 +394,7 @@ class HierarchicalController:
             ),
         )
 
-    def _step_checked(self, t0: float, inputs: StepInputs) -> ControlOutput:
+    def step_trusted(self, t0: float, inputs: StepInputs) -> ControlOutput:
         """:meth:`step` after its argument conversion and shape checks (``t0``: its start).
 
         For a caller whose arrays are already float64 of the right shapes and ``dt`` a positive
@@ -444,18 +444,26 @@ class HierarchicalController:
             tau, qdd, status, slack, result.solve_us, clamped, (time.perf_counter() - t0) * 1e6
         )
 
+    def limit_check(self, dt: float, tol: float) -> JointLimitCheck:
+        """Levels 1-2 (torque, joint position and velocity limits) as a per-joint test of one
+        ``x``, their bounds widened by ``tol`` (the haptic loop's exact shortcut)."""
+        T, half_T2, q_hi, q_lo = self.position_limit.check_bounds(dt, tol)
+        v_horizon, v = self.velocity_limit.check_bounds(dt, tol)
+        tau = self.torque_limit.check_bounds(tol)
+        return JointLimitCheck(tau, T, half_T2, q_hi, q_lo, v_horizon, v)
+
     def _allocate(self, capacity: int) -> None:
         """Row buffers for ``capacity`` rows, with the constant rows of levels 1 and 2 filled."""
         n = self.n_joints
         A = np.zeros((capacity, 2 * n))
         bu = np.zeros(capacity)
         bl = np.full(capacity, -DAQP_INF)
-        A[:n, n:] = self.eom._minus_eye
+        A[:n, n:] = self.eom.torque_block
         torque = self.torque_limit.rows()
         A[self._o_tau : self._o_tau + 2 * n] = torque.G
         bu[self._o_tau : self._o_tau + 2 * n] = torque.h
-        A[self._o_pos : self._o_pos + 2 * n] = self.position_limit._G
-        A[self._o_vel : self._o_vel + 2 * n] = self.velocity_limit._G
+        A[self._o_pos : self._o_pos + 2 * n] = self.position_limit.matrix
+        A[self._o_vel : self._o_vel + 2 * n] = self.velocity_limit.matrix
         self._A, self._bu, self._bl = A, bu, bl
 
     def _stacked(self, inputs: StepInputs) -> StackedLevels:
@@ -484,18 +492,18 @@ class HierarchicalController:
         # The tasks' own argument checks, in the order _levels meets them.
         tau_int = None
         if interaction_torque is not None:
-            tau_int = _array(interaction_torque, (n,), "interaction_torque")
+            tau_int = shaped_array(interaction_torque, (n,), "interaction_torque")
         level3: list[tuple[NDArray, NDArray, bool]] = []
         if self.walls is not None:
             walls = self.walls.rows(hip_position, hip_jacobian, hip_jdot_qd, qd, dt)
             level3.append((walls.G, walls.h, False))
         rest = self.min_acceleration.rows(qd)
-        level3 += [solver._task_arrays(task, 2) for task in wall_rows]
-        level4 = [solver._task_arrays(task, 3) for task in haptic_rows]
+        level3 += [solver.task_arrays(task, 2) for task in wall_rows]
+        level4 = [solver.task_arrays(task, 3) for task in haptic_rows]
         if motion is None:
             lower = [[(rest.A, rest.b, True)], []]
         else:
-            lower = [[solver._task_arrays(motion, 4)], [(rest.A, rest.b, True)]]
+            lower = [[solver.task_arrays(motion, 4)], [(rest.A, rest.b, True)]]
         head = self._head_counts[0] + self._head_counts[1]
         counts = [*self._head_counts]
         rows = head
@@ -506,26 +514,11 @@ class HierarchicalController:
         if rows > self._A.shape[0]:
             self._allocate(2 * rows)
         A, bu, bl = self._A, self._bu, self._bl
-        # Level 1: M qdd - tau = tau_int - h.
+        # Level 1: M qdd - tau = tau_int - h; level 2: the joint limits' bounds, each task's own.
         A[:n, :n] = M
-        b = np.negative(h, out=bu[:n])
-        if tau_int is not None:
-            b += self.config.equation_of_motion.interaction_torque_scale * tau_int
-        bl[:n] = b
-        # Level 2: 2/T^2 (limit - q - T qd) for the positions, (v_max -+ qd)/T for the speeds.
-        pl = self.position_limit
-        T = pl.horizon_s(dt)
-        predicted = q + T * qd
-        o = self._o_pos
-        np.subtract(pl._upper, predicted, out=bu[o : o + n])
-        np.subtract(predicted, pl._lower, out=bu[o + n : o + 2 * n])
-        bu[o : o + 2 * n] *= 2.0 / (T * T)
-        vl = self.velocity_limit
-        T = max(vl.config.horizon_s, _period(dt))
-        o = self._o_vel
-        np.subtract(vl.v_max, qd, out=bu[o : o + n])
-        np.add(vl.v_max, qd, out=bu[o + n : o + 2 * n])
-        bu[o : o + 2 * n] /= T
+        bl[:n] = self.eom.rhs_into(h, tau_int, bu[:n])
+        self.position_limit.bounds_into(q, qd, dt, bu[self._o_pos : self._o_pos + 2 * n])
+        self.velocity_limit.bounds_into(qd, dt, bu[self._o_vel : self._o_vel + 2 * n])
         # Levels 3-6 follow in order (their row counts change from tick to tick).
         r = head
         for level in (level3, level4, *lower):

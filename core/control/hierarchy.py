@@ -303,7 +303,7 @@ class HierarchicalSolver:
         for k, level in enumerate(levels):
             count = 0
             for task in level:
-                mat, vec, eq = self._task_arrays(task, k)
+                mat, vec, eq = self.task_arrays(task, k)
                 rows = vec.shape[0]
                 if rows:
                     mats.append(mat)
@@ -322,7 +322,7 @@ class HierarchicalSolver:
             raise InputError("task rows: expected real numbers") from None
         return A, bu, bl, counts
 
-    def _task_arrays(self, task: Task, k: int) -> tuple[NDArray, NDArray, bool]:
+    def task_arrays(self, task: Task, k: int) -> tuple[NDArray, NDArray, bool]:
         """``task``'s matrix, right-hand side and whether it is an equality, shapes checked.
 
         ``k`` is the level's index (0 = top), for the message.

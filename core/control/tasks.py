@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -30,8 +31,11 @@ FloatArray = NDArray[np.float64]
 
 
 # ----- argument helpers ---------------------------------------------------------------------------
-def _array(value: ArrayLike, shape: tuple[int, ...], name: str) -> FloatArray:
-    """``value`` as a float64 array of exactly ``shape`` (values are not checked: see module)."""
+def shaped_array(value: ArrayLike, shape: tuple[int, ...], name: str) -> FloatArray:
+    """``value`` as a float64 array of exactly ``shape`` (values are not checked: see module).
+
+    The tasks' argument check; the controller makes it on their behalf for its stacked rows.
+    """
     if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == shape:
         return value  # the per-tick case: nothing to convert
     try:
@@ -43,7 +47,8 @@ def _array(value: ArrayLike, shape: tuple[int, ...], name: str) -> FloatArray:
     return arr
 
 
-def _period(dt: object) -> float:
+def control_period(dt: object) -> float:
+    """``dt`` (s) as a positive finite float, or :class:`InputError` naming ``dt``."""
     if type(dt) is float and 0.0 < dt < math.inf:
         return dt  # the per-tick case
     value = as_finite_scalar(dt, "dt")
@@ -59,7 +64,7 @@ def _n_joints(n_joints: object) -> int:
 
 
 def _limit_vector(value: ArrayLike, n: int, name: str, *, allow_inf: bool) -> FloatArray:
-    arr = _array(np.reshape(value, -1), (n,), name)
+    arr = shaped_array(np.reshape(value, -1), (n,), name)
     if np.isnan(arr).any() or (not allow_inf and not np.isfinite(arr).all()):
         raise InputError(f"{name}: must be {'numbers' if allow_inf else 'finite'}, got {arr}")
     return read_only(arr.copy())
@@ -128,16 +133,33 @@ class EquationOfMotion:
             ``n`` rows named ``"equation_of_motion"``.
         """
         n = self.n
-        M = _array(mass_matrix, (n, n), "mass_matrix")
-        h = _array(nonlinear_effects, (n,), "nonlinear_effects")
+        M = shaped_array(mass_matrix, (n, n), "mass_matrix")
+        h = shaped_array(nonlinear_effects, (n,), "nonlinear_effects")
         A = np.empty((n, 2 * n))
         A[:, :n] = M
         A[:, n:] = self._minus_eye
-        b = -h
+        tau_int = None
         if interaction_torque is not None:
-            tau_int = _array(interaction_torque, (n,), "interaction_torque")
-            b = b + self.config.interaction_torque_scale * tau_int
-        return Equality(A, b, "equation_of_motion")
+            tau_int = shaped_array(interaction_torque, (n,), "interaction_torque")
+        return Equality(A, self.rhs_into(h, tau_int, np.empty(n)), "equation_of_motion")
+
+    @property
+    def torque_block(self) -> FloatArray:
+        """The constant ``-I`` of ``[M, -I]`` (read-only), the rows' ``tau`` columns."""
+        return self._minus_eye
+
+    def rhs_into(
+        self, nonlinear_effects: FloatArray, interaction_torque: FloatArray | None, out: FloatArray
+    ) -> FloatArray:
+        """The right-hand side ``scale * tau_int - h`` written into ``out`` (shape ``(n,)``).
+
+        The one formula of the rows' ``b``: :meth:`rows` and the controller's stacked rows both
+        call it with checked float arrays.
+        """
+        b = np.negative(nonlinear_effects, out=out)
+        if interaction_torque is not None:
+            b += self.config.interaction_torque_scale * interaction_torque
+        return b
 
 
 # ----- 2: joint limits ----------------------------------------------------------------------------
@@ -185,27 +207,52 @@ class JointPositionLimit:
                 f"q_min, q_max: every joint needs q_max - q_min > 2 * margin_rad ({2 * margin}), "
                 f"got q_min={self.q_min.tolist()} q_max={self.q_max.tolist()}"
             )
-        self._upper = self.q_max - margin
-        self._lower = self.q_min + margin
+        self._upper = read_only(self.q_max - margin)
+        self._lower = read_only(self.q_min + margin)
         self._G = read_only(np.vstack([_selector(self.n, 0, 1.0), _selector(self.n, 0, -1.0)]))
+
+    @property
+    def matrix(self) -> FloatArray:
+        """The constant matrix ``[[I, 0], [-I, 0]]`` of the rows (read-only)."""
+        return self._G
 
     def horizon_s(self, dt: float) -> float:
         """The horizon actually used: ``max(horizon_s, dt)``."""
-        return max(self.config.horizon_s, _period(dt))
+        return max(self.config.horizon_s, control_period(dt))
 
     def rows(self, q: ArrayLike, qd: ArrayLike, dt: float) -> Inequality:
         """Rows for joint positions ``q`` and velocities ``qd`` (shape ``(n,)``), period ``dt``."""
         n = self.n
-        q = _array(q, (n,), "q")
-        qd = _array(qd, (n,), "qd")
+        q = shaped_array(q, (n,), "q")
+        qd = shaped_array(qd, (n,), "qd")
+        return Inequality(
+            self._G, self.bounds_into(q, qd, dt, np.empty(2 * n)), "joint_position_limit"
+        )
+
+    def bounds_into(self, q: FloatArray, qd: FloatArray, dt: float, out: FloatArray) -> FloatArray:
+        """The rows' right-hand side ``+-2 (bound - q - T qd) / T^2`` written into ``out``.
+
+        The one formula of the rows: :meth:`rows` and the controller's stacked rows call it with
+        checked float arrays (``out`` of shape ``(2 n,)``, upper bounds first).
+        """
+        n = self.n
         T = self.horizon_s(dt)
-        gain = 2.0 / (T * T)
         predicted = q + T * qd
-        h = np.empty(2 * n)
         # inf - finite stays inf: unlimited joints give inactive rows, never NaN.
-        h[:n] = gain * (self._upper - predicted)
-        h[n:] = gain * (predicted - self._lower)
-        return Inequality(self._G, h, "joint_position_limit")
+        np.subtract(self._upper, predicted, out=out[:n])
+        np.subtract(predicted, self._lower, out=out[n:])
+        out *= 2.0 / (T * T)
+        return out
+
+    def check_bounds(self, dt: float, tol: float) -> tuple[float, float, list[float], list[float]]:
+        """``(T, T^2/2, upper + tol, lower - tol)``: the rows as a test of one ``x``.
+
+        ``q + T qd + T^2/2 qdd`` within ``[lower - tol, upper + tol]`` is the same inequality as
+        the rows, in the prediction form a per-joint check evaluates cheaply
+        (:meth:`JointLimitCheck.admits`).
+        """
+        T = self.horizon_s(dt)
+        return T, 0.5 * T * T, (self._upper + tol).tolist(), (self._lower - tol).tolist()
 
 
 @dataclass(frozen=True)
@@ -240,15 +287,36 @@ class JointVelocityLimit:
             raise InputError(f"v_max: must be positive, got {self.v_max.tolist()}")
         self._G = read_only(np.vstack([_selector(self.n, 0, 1.0), _selector(self.n, 0, -1.0)]))
 
+    @property
+    def matrix(self) -> FloatArray:
+        """The constant matrix ``[[I, 0], [-I, 0]]`` of the rows (read-only)."""
+        return self._G
+
+    def horizon_s(self, dt: float) -> float:
+        """The horizon actually used: ``max(horizon_s, dt)``."""
+        return max(self.config.horizon_s, control_period(dt))
+
     def rows(self, qd: ArrayLike, dt: float) -> Inequality:
         """Rows for joint velocities ``qd`` (shape ``(n,)``), period ``dt``."""
+        qd = shaped_array(qd, (self.n,), "qd")
+        return Inequality(
+            self._G, self.bounds_into(qd, dt, np.empty(2 * self.n)), "joint_velocity_limit"
+        )
+
+    def bounds_into(self, qd: FloatArray, dt: float, out: FloatArray) -> FloatArray:
+        """The rows' right-hand side ``(v_max -+ qd) / T`` written into ``out`` (``(2 n,)``).
+
+        The one formula of the rows: :meth:`rows` and the controller's stacked rows call it.
+        """
         n = self.n
-        qd = _array(qd, (n,), "qd")
-        T = max(self.config.horizon_s, _period(dt))
-        h = np.empty(2 * n)
-        h[:n] = (self.v_max - qd) / T
-        h[n:] = (self.v_max + qd) / T
-        return Inequality(self._G, h, "joint_velocity_limit")
+        np.subtract(self.v_max, qd, out=out[:n])
+        np.add(self.v_max, qd, out=out[n:])
+        out /= self.horizon_s(dt)
+        return out
+
+    def check_bounds(self, dt: float, tol: float) -> tuple[float, list[float]]:
+        """``(T, v_max + tol)``: the rows as a test of one ``x`` (``|qd + T qdd| <= v_max``)."""
+        return self.horizon_s(dt), (self.v_max + tol).tolist()
 
 
 @dataclass(frozen=True)
@@ -289,6 +357,41 @@ class TorqueLimit:
     def rows(self) -> Inequality:
         """The (constant) rows."""
         return self._rows
+
+    def check_bounds(self, tol: float) -> list[float]:
+        """``scale tau_max (1 + tol)``: the rows as a test of one ``x``, relative tolerance."""
+        return (self.config.scale * self.tau_max * (1.0 + tol)).tolist()
+
+
+class JointLimitCheck(NamedTuple):
+    """Levels 1-2's inequalities (torque, joint position and velocity limits) as a test of one
+    ``x``, joint by joint on Python floats (cheaper than building their rows).
+
+    Built by :meth:`~.controller.HierarchicalController.limit_check` from the tasks'
+    ``check_bounds``; :meth:`admits` is the one place that evaluates them this way.
+    """
+
+    tau: list[float]
+    horizon: float
+    half_horizon_sq: float
+    q_hi: list[float]
+    q_lo: list[float]
+    v_horizon: float
+    v: list[float]
+
+    def admits(self, tau: list[float], q: list[float], qd: list[float], qdd: list[float]) -> bool:
+        """``|tau| <= tau_max``, ``q + T qd + T^2/2 qdd`` within the limits and
+        ``|qd + T_v qdd| <= v_max``, every joint (bounds widened by the tolerance)."""
+        T, half_T2, Tv = self.horizon, self.half_horizon_sq, self.v_horizon
+        for tau_i, q_i, qd_i, qdd_i, tau_max, q_hi, q_lo, v_max in zip(
+            tau, q, qd, qdd, self.tau, self.q_hi, self.q_lo, self.v, strict=True
+        ):
+            if abs(tau_i) > tau_max:
+                return False
+            q_pred = q_i + T * qd_i + half_T2 * qdd_i
+            if q_pred > q_hi or q_pred < q_lo or abs(qd_i + Tv * qdd_i) > v_max:
+                return False
+        return True
 
 
 # ----- 3: fixed walls -----------------------------------------------------------------------------
@@ -360,7 +463,7 @@ class FixedWalls:
 
     def distances(self, hip_position: ArrayLike) -> FloatArray:
         """Free distance ``d_i`` of the HIP to each plane (margin subtracted), shape ``(k,)``."""
-        p = _array(hip_position, (3,), "hip_position")
+        p = shaped_array(hip_position, (3,), "hip_position")
         return self.normals @ p - self._offsets - self.config.margin_m
 
     def rows(
@@ -392,10 +495,10 @@ class FixedWalls:
             One row per active wall (possibly none), named ``"fixed_walls"``.
         """
         n = self.n
-        J = _array(hip_jacobian, (3, n), "hip_jacobian")
-        jdqd = _array(hip_jdot_qd, (3,), "hip_jdot_qd")
-        qd = _array(qd, (n,), "qd")
-        T = max(self.config.horizon_s, _period(dt))
+        J = shaped_array(hip_jacobian, (3, n), "hip_jacobian")
+        jdqd = shaped_array(hip_jdot_qd, (3,), "hip_jdot_qd")
+        qd = shaped_array(qd, (n,), "qd")
+        T = max(self.config.horizon_s, control_period(dt))
         normals = self.normals
         d = self.distances(hip_position)
         if d.min() >= self.config.activation_distance_m:
@@ -455,7 +558,9 @@ class MinimizeAcceleration:
             return Equality(self._A, self._zero, "minimize_acceleration")
         if qd is None:
             raise InputError("qd: required when damping_1_per_s > 0")
-        return Equality(self._A, -damping * _array(qd, (self.n,), "qd"), "minimize_acceleration")
+        return Equality(
+            self._A, -damping * shaped_array(qd, (self.n,), "qd"), "minimize_acceleration"
+        )
 
 
 def _saturate(acc: FloatArray, limit: float) -> FloatArray:
@@ -510,13 +615,13 @@ class JointMotionTask:
     ) -> Equality:
         """Rows towards ``q_target`` (and ``qd_target``, feed-forward ``qdd_target``)."""
         n, cfg = self.n, self.config
-        q = _array(q, (n,), "q")
-        qd = _array(qd, (n,), "qd")
-        acc = cfg.stiffness_1_per_s2 * (_array(q_target, (n,), "q_target") - q)
-        v_target = np.zeros(n) if qd_target is None else _array(qd_target, (n,), "qd_target")
+        q = shaped_array(q, (n,), "q")
+        qd = shaped_array(qd, (n,), "qd")
+        acc = cfg.stiffness_1_per_s2 * (shaped_array(q_target, (n,), "q_target") - q)
+        v_target = np.zeros(n) if qd_target is None else shaped_array(qd_target, (n,), "qd_target")
         acc += cfg.damping_1_per_s * (v_target - qd)
         if qdd_target is not None:
-            acc += _array(qdd_target, (n,), "qdd_target")
+            acc += shaped_array(qdd_target, (n,), "qdd_target")
         return Equality(self._A, _saturate(acc, cfg.max_acceleration_rad_per_s2), "joint_motion")
 
 
@@ -568,20 +673,20 @@ class HipMotionTask:
     ) -> Equality:
         """Rows towards ``target_position`` (world frame, shape ``(3,)``)."""
         n, cfg = self.n, self.config
-        p = _array(hip_position, (3,), "hip_position")
-        J = _array(hip_jacobian, (3, n), "hip_jacobian")
-        jdqd = _array(hip_jdot_qd, (3,), "hip_jdot_qd")
-        qd = _array(qd, (n,), "qd")
+        p = shaped_array(hip_position, (3,), "hip_position")
+        J = shaped_array(hip_jacobian, (3, n), "hip_jacobian")
+        jdqd = shaped_array(hip_jdot_qd, (3,), "hip_jdot_qd")
+        qd = shaped_array(qd, (n,), "qd")
         v = J @ qd
-        acc = cfg.stiffness_1_per_s2 * (_array(target_position, (3,), "target_position") - p)
+        acc = cfg.stiffness_1_per_s2 * (shaped_array(target_position, (3,), "target_position") - p)
         v_target = (
             np.zeros(3)
             if target_velocity is None
-            else _array(target_velocity, (3,), "target_velocity")
+            else shaped_array(target_velocity, (3,), "target_velocity")
         )
         acc += cfg.damping_1_per_s * (v_target - v)
         if target_acceleration is not None:
-            acc += _array(target_acceleration, (3,), "target_acceleration")
+            acc += shaped_array(target_acceleration, (3,), "target_acceleration")
         acc = _saturate(acc, cfg.max_acceleration_m_per_s2)
         A = np.zeros((3, 2 * n))
         A[:, :n] = J
@@ -595,6 +700,7 @@ __all__ = [
     "FixedWallsConfig",
     "HipMotionConfig",
     "HipMotionTask",
+    "JointLimitCheck",
     "JointMotionConfig",
     "JointMotionTask",
     "JointPositionLimit",

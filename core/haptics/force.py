@@ -89,27 +89,38 @@ class ForceConstraintConfig(StageConfig):
     )
 
 
-def _solve_spd(M: FloatArray, rhs: FloatArray) -> FloatArray:
-    # LAPACK Cholesky directly: ~1.5 us for 6x6 against ~12 us through numpy's wrappers, and
-    # its failure is the positive-definiteness check.
-    factor, info = lapack.dpotrf(M, lower=False)
+def mass_factor(mass_matrix: FloatArray, name: str = "hip.mass_matrix") -> FloatArray:
+    """The upper Cholesky factor of the mass matrix (float64, ``(n, n)``), for :func:`solve_mass`.
+
+    LAPACK directly: ~2 us for 6x6 against ~12-15 us through numpy's checked solve, and its
+    failure is the positive-definiteness check.
+
+    Raises
+    ------
+    InputError
+        If the matrix is not symmetric positive definite (named by ``name``).
+    """
+    factor, info = lapack.dpotrf(mass_matrix, lower=False)
     if info != 0:
-        raise InputError("hip.mass_matrix: must be symmetric positive definite")
-    solution, info = lapack.dpotrs(factor, rhs, lower=False)
-    if info != 0:  # pragma: no cover - dpotrs only fails on malformed arguments
-        raise InputError("hip.mass_matrix: Cholesky solve failed")
-    return solution
+        raise InputError(f"{name}: must be symmetric positive definite")
+    return factor
 
 
-def _mass_terms(state: HipState, J_c: FloatArray) -> tuple[FloatArray, FloatArray]:
+def solve_mass(factor: FloatArray, J_c: FloatArray) -> tuple[FloatArray, float]:
+    """``w = M^-1 J_c^T`` and ``mu_c = J_c M^-1 J_c^T`` (1/kg) from :func:`mass_factor`'s factor."""
+    w, _ = lapack.dpotrs(factor, J_c, lower=False)
+    return w, float(J_c.dot(w))
+
+
+def _mass_terms(state: HipState, n: int) -> tuple[FloatArray, FloatArray]:
+    """The checked factor of the state's mass matrix, and its nonlinear effects."""
     M = np.asarray(state.mass_matrix, dtype=np.float64)
     nle = np.asarray(state.nonlinear_effects, dtype=np.float64)
-    n = J_c.shape[0]
     if M.shape != (n, n) or not np.isfinite(M).all():
         raise InputError(f"hip.mass_matrix: expected a finite ({n}, {n}) matrix, got {M.shape}")
     if nle.shape != (n,) or not np.isfinite(nle).all():
         raise InputError(f"hip.nonlinear_effects: expected {n} finite numbers, got {nle.shape}")
-    return _solve_spd(M, J_c), nle
+    return mass_factor(M), nle
 
 
 def effective_mass_kg(state: HipState, normal: ArrayLike) -> float:
@@ -119,8 +130,8 @@ def effective_mass_kg(state: HipState, normal: ArrayLike) -> float:
     """
     n = as_unit_vector3(normal, "normal")
     J_c = n @ np.asarray(state.jacobian, dtype=np.float64)
-    w, _ = _mass_terms(state, J_c)
-    mu = float(J_c @ w)
+    factor, _ = _mass_terms(state, J_c.shape[0])
+    _, mu = solve_mass(factor, J_c)
     return math.inf if mu <= MU_SINGULAR else 1.0 / mu
 
 
@@ -202,12 +213,24 @@ class ForceConstraint:
         n = hs.n_joints
         if hs.d_proj > self.config.activation_distance_m:
             return empty_inequality(2 * n, self.name)
-        w, nle = _mass_terms(state, hs.J_c)
-        mu = float(hs.J_c @ w)
+        factor, nle = _mass_terms(state, n)
+        w, bound = self.bound(hs, factor, nle, limit)
         G = np.zeros((1, 2 * n))
         G[0, n:] = -w
-        h = np.array([mu * limit - float(w @ nle) + hs.Jdc_qd])
-        return Inequality(G, h, self.name)
+        return Inequality(G, np.array([bound]), self.name)
+
+    @staticmethod
+    def bound(
+        hs: HapticState, factor: FloatArray, nonlinear_effects: FloatArray, limit_n: float
+    ) -> tuple[FloatArray, float]:
+        """``(w, h)`` of the row ``G = [0, -w^T]``, ``h = mu_c F_lim - w . nle + Jdc_qd``, with
+        ``w = M^-1 J_c^T`` (``factor``: :func:`mass_factor`'s).
+
+        The constraint's one formula: :meth:`rows` and the haptic loop's rows both call it (the
+        loop factors ``M`` once per tick for every surface).
+        """
+        w, mu = solve_mass(factor, hs.J_c)
+        return w, mu * limit_n - float(w.dot(nonlinear_effects)) + hs.Jdc_qd
 
 
 def contact_force_n(state: HipState, surface: Any, tau: ArrayLike) -> float:
@@ -221,6 +244,6 @@ def contact_force_n(state: HipState, surface: Any, tau: ArrayLike) -> float:
     t = np.asarray(tau, dtype=np.float64)
     if t.shape != (hs.n_joints,) or not np.isfinite(t).all():
         raise InputError(f"tau: expected {hs.n_joints} finite numbers, got shape {t.shape}")
-    w, nle = _mass_terms(state, hs.J_c)
-    mu = max(float(hs.J_c @ w), MU_SINGULAR)
-    return -(float(w @ (t - nle)) + hs.Jdc_qd) / mu
+    factor, nle = _mass_terms(state, hs.n_joints)
+    w, mu = solve_mass(factor, hs.J_c)
+    return -(float(w @ (t - nle)) + hs.Jdc_qd) / max(mu, MU_SINGULAR)

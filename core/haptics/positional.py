@@ -109,12 +109,19 @@ class PositionalConstraint:
         hs = haptic if haptic is not None else haptic_state(state, surface)
         dt = check_dt(dt)
         n = hs.n_joints
-        cfg = self.config
-        if hs.d_proj > cfg.activation_distance_m:
+        if hs.d_proj > self.config.activation_distance_m:
             return empty_inequality(2 * n, self.name)
-        horizon = cfg.kp * dt
-        d_dot = hs.d_dot_robot + (hs.d_dot_surface if cfg.surface_velocity_feedforward else 0.0)
         G = np.zeros((1, 2 * n))
         G[0, :n] = -hs.J_c
-        h = np.array([2.0 * (hs.d_proj + horizon * d_dot) / (horizon * horizon) + hs.Jdc_qd])
-        return Inequality(G, h, self.name)
+        return Inequality(G, np.array([self.bound(hs, dt)]), self.name)
+
+    def bound(self, hs: HapticState, dt: float) -> float:
+        """The row's right-hand side ``2 (d_proj + T d_dot) / T^2 + Jdc_qd`` (m/s^2), ``T = kp dt``.
+
+        The constraint's one formula: :meth:`rows` and the haptic loop's shared motion row (whose
+        ``G = [-J_c, 0]`` is this row's) both call it. ``dt`` is a checked period.
+        """
+        cfg = self.config
+        horizon = cfg.kp * dt
+        d_dot = hs.distance_rate(cfg.surface_velocity_feedforward)
+        return 2.0 * (hs.d_proj + horizon * d_dot) / (horizon * horizon) + hs.Jdc_qd

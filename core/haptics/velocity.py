@@ -160,12 +160,20 @@ class VelocityConstraint:
         hs = haptic if haptic is not None else haptic_state(state, surface)
         dt = check_dt(dt)
         n = hs.n_joints
-        cfg = self.config
-        if hs.d_proj > cfg.activation_distance_m:
+        if hs.d_proj > self.config.activation_distance_m:
             return empty_inequality(2 * n, self.name)
-        gain_time = cfg.kv * dt
-        d_dot = hs.d_dot_robot + (hs.d_dot_surface if cfg.surface_velocity_feedforward else 0.0)
         G = np.zeros((1, 2 * n))
         G[0, :n] = -hs.J_c
-        h = np.array([(cfg.bound(hs.d_proj) + d_dot) / gain_time + hs.Jdc_qd])
-        return Inequality(G, h, self.name)
+        return Inequality(G, np.array([self.bound(hs, dt)]), self.name)
+
+    def bound(self, hs: HapticState, dt: float, speed_mps: float | None = None) -> float:
+        """The row's right-hand side ``(v_c(d_proj) + d_dot) / K + Jdc_qd`` (m/s^2), ``K = kv dt``.
+
+        The constraint's one formula: :meth:`rows` and the haptic loop's shared motion row both
+        call it. ``speed_mps`` replaces ``v_c(d_proj)`` (the loop's cap on the approach speed
+        while a surface is held). ``dt`` is a checked period.
+        """
+        cfg = self.config
+        speed = cfg.bound(hs.d_proj) if speed_mps is None else speed_mps
+        gain_time = cfg.kv * dt
+        return (speed + hs.distance_rate(cfg.surface_velocity_feedforward)) / gain_time + hs.Jdc_qd
