@@ -9,7 +9,8 @@ What runs where:
 - **drive emulator process**: six emulated CiA 402 drives moving the exoskeleton, whose dynamics
   are the scene's plant with the scene's patient pushing the handle
   (:class:`~hapticloud.hardware.drives.scene_arm.SceneArmFactory`);
-- **perception process** (spawned here, outside the loop): each of the scene's cameras, at its
+- **perception process** (spawned here, outside the loop): the one perception worker
+  (:func:`hapticloud.hardware.perception.session_worker`): each of the scene's cameras, at its
   rate, renders the scene's world with the robot where the control loop says it is (the shared
   :class:`~hapticloud.hardware.control.shared_state.RobotStateBlock`), runs its pipeline for that
   HIP and sends the estimate (capture time on :func:`time.monotonic`) straight down the control
@@ -35,12 +36,10 @@ deterministic run feeds it ``J^T F_hand`` when ``robot.force_sensor`` is set).
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import multiprocessing as mp
 import time
-import traceback
 from collections.abc import Callable, Mapping
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -84,191 +83,29 @@ class _HipSampler:
         return st
 
 
-# ----- perception, in a process of its own -------------------------------------------------------
-def _perception_main(*args: Any) -> None:
-    """:func:`_perception` (same arguments, the answer pipe last), its failure sent as
-    ``("error", traceback)``."""
-    try:
-        _perception(*args)
-    except BaseException:
-        try:
-            args[-1].send(("error", traceback.format_exc()))
-        except Exception:
-            pass
-
-
 def _spread(values: Any, scale: float = 1.0) -> dict[str, float | int | None]:
     """Median, p99 and max of the finite values (JSON-safe)."""
     return summary(values, scale, percentiles=(99,), count=False)
 
 
-def _perception(
-    scene: str,
-    overrides: dict[str, Any] | None,
-    block_name: str,
-    n_joints: int,
-    est_conn: Any,
-    record_sink: Any,
-    conn: Any,
-) -> None:
-    """The scene's cameras against the live robot state until told to stop (see the module
-    docstring); answers ``("result", stats)``. ``record_sink``: a recorder's
-    :class:`~hapticloud.hardware.recording.recorder.RecordSink` (each frame, its HIP and robot
-    shapes and the estimate sent), or ``None``."""
-    from hapticloud.core.loop import admit
-    from hapticloud.core.scene import load_scene
-    from hapticloud.core.sim.closed_loop import ClosedLoopSim
-    from hapticloud.core.threads import settle_numerics
+def _start_perception(scene: str, overrides: Any, cp: Any, n_joints: int, record_sink: Any) -> Any:
+    """The scene's cameras in a perception process of their own (the one perception worker,
+    :func:`~hapticloud.hardware.perception.session_worker`), built and ready to go."""
+    from ..perception import PerceptionProcess, session_worker
 
-    from ..control.messages import send_estimate
-    from ..control.shared_state import RobotStateBlock
-
-    settle_numerics(1)
-    sim = ClosedLoopSim(load_scene(scene, overrides))
-    cams = sim.cameras
-    seen: list[Any] = []  # the frame hook's last (frame, hip, exclude, estimate)
-    if record_sink is not None:
-        sim.frame_sink = lambda *frame: seen.append(frame)
-    block = RobotStateBlock.attach(block_name, n_joints)
-    conn.send(("ready", [c.spec.name for c in cams]))
-    msg = conn.recv()
-    if msg[0] != "go":
-        block.close()
-        conn.send(("result", {}))
-        return
-    t_origin = float(msg[1])
-    names = [c.spec.name for c in cams]
-    sent = dict.fromkeys(names, 0)
-    valid = dict.fromkeys(names, 0)
-    admitted = dict.fromkeys(names, 0)
-    skipped = dict.fromkeys(names, 0)
-    perception_ms: list[float] = []
-    delivery_ms: list[float] = []
-    # Camera k fires at t_origin + phase_k + m / rate (as in the simulation's schedule).
-    next_t = {c.spec.name: t_origin + c.phase_s for c in cams}
-    # (send at, capture t, estimate or None, camera)
-    pending: list[tuple[float, float, Any, str]] = []
-    try:
-        while not conn.poll():
-            now = time.monotonic()
-            if pending:
-                keep = []
-                for item in pending:
-                    if item[0] <= now:
-                        send_estimate(est_conn, item[2])
-                        delivery_ms.append((time.monotonic() - item[1]) * 1e3)
-                    else:
-                        keep.append(item)
-                pending = keep
-            due = [c for c in cams if next_t[c.spec.name] <= now]
-            if not due:
-                wake = min([now + 0.01, *next_t.values(), *(p[0] for p in pending)])
-                time.sleep(max(0.0, wake - time.monotonic()))
-                continue
-            cam = min(due, key=lambda c: next_t[c.spec.name])
-            name = cam.spec.name
-            st = block.read()
-            if st is not None:
-                p0 = time.perf_counter()
-                est = sim._capture(cam, max(0.0, st.t - t_origin), st.q_rad, st.hip_m)
-                perception_ms.append((time.perf_counter() - p0) * 1e3)
-                est = dataclasses.replace(est, t=st.t, seq=cam.frames)
-                if seen:  # recorded as sent: the monotonic clock, the sequence number
-                    frame, hip, exclude, _ = seen.pop()
-                    record_sink.capture(st.t, frame, hip, exclude, est)
-                cam.frames += 1
-                sent[name] += 1
-                valid[name] += bool(est.valid)
-                ok = admit(est, cam.spec.min_quality, cam.spec.fuse_fallbacks)
-                admitted[name] += ok
-                pending.append((st.t + cam.spec.latency_s, st.t, est, name))
-            # The next frame on the camera's grid; frames the renderer could not keep up with
-            # are dropped, as a camera's driver drops them.
-            step = 1.0 / cam.spec.rate_hz
-            nxt = next_t[name] + step
-            late = time.monotonic()
-            if nxt <= late:
-                missed = math.floor((late - nxt) / step) + 1
-                skipped[name] += missed
-                nxt += missed * step
-            next_t[name] = nxt
-    finally:
-        block.close()
-    conn.send(
-        (
-            "result",
-            {
-                "record_dropped": record_sink.dropped if record_sink is not None else 0,
-                "sent": sent,
-                "valid": valid,
-                "admitted": admitted,
-                "skipped_frames": skipped,
-                "perception_ms": _spread(np.array(perception_ms)),
-                "capture_to_send_ms": _spread(np.array(delivery_ms)),
-            },
-        )
+    perception = PerceptionProcess(
+        session_worker,
+        (scene, overrides, cp.state_block_name, n_joints, cp.estimate_connection, record_sink),
     )
+    perception.wait_ready()
+    return perception
 
 
-class _Perception:
-    """Parent's handle on the perception process."""
-
-    def __init__(
-        self,
-        scene: str,
-        overrides: dict[str, Any] | None,
-        cp: Any,
-        n_joints: int,
-        record_sink: Any = None,
-    ) -> None:
-        ctx = mp.get_context("spawn")
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(
-            target=_perception_main,
-            args=(
-                scene,
-                overrides,
-                cp.state_block_name,
-                n_joints,
-                cp.estimate_connection,
-                record_sink,
-                child,
-            ),
-            name="hapticloud-perception",
-            daemon=True,
-        )
-        self._proc.start()
-        child.close()
-        self.error: str | None = None
-
-    def _recv(self, timeout: float) -> tuple[str, Any]:
-        if not self._conn.poll(timeout):
-            raise TimeoutError("perception process did not answer in time")
-        kind, payload = self._conn.recv()
-        if kind == "error":
-            self.error = payload
-            raise RuntimeError(f"perception process failed:\n{payload}")
-        return kind, payload
-
-    def wait_ready(self, timeout: float = 60.0) -> list[str]:
-        return self._recv(timeout)[1]
-
-    def go(self, t_origin: float) -> None:
-        self._conn.send(("go", t_origin))
-
-    def stop(self, timeout: float = 10.0) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        try:
-            self._conn.send(("stop",))
-            out = self._recv(timeout)[1]
-        except (OSError, EOFError, RuntimeError, TimeoutError) as err:
-            self.error = self.error or str(err) or type(err).__name__
-        self._proc.join(timeout)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(2.0)
-        self._conn.close()
-        return out
+def _stop_perception(perception: Any) -> dict[str, Any]:
+    """The perception process stopped; its figures as the report carries them."""
+    stats = perception.stop()
+    dropped = stats.pop("sink_dropped", {})
+    return {"record_dropped": int(dropped.get("RecorderSink", 0)), **stats} if stats else {}
 
 
 class _StateWaiter:
@@ -411,20 +248,53 @@ def run_session(
     RuntimeError
         The control process failed.
     """
+    say = progress or (lambda _text: None)
+    ovr = dict(overrides) if overrides else None
+    loaded, sim, duration = _checked_scene(scene, ovr, duration_s, emulator)
+    cams = sim.cameras if cameras else []
+    cp = _control_process(scene, ovr, emulator, fifo_priority, plant_substeps, duration)
+    recorder = _recorder(record, loaded, record_limit_bytes)
+    say(f"starting the control process and the emulated drives ({emulator}) ...")
+    wall0 = time.monotonic()
+    info = cp.start(timeout=120.0)
+    live = _LiveSession(cp, sim.hip_radius_m, recorder, say)
+    start_perception = None
+    if cams:
+        sink = recorder.sink if recorder else None
+        start_perception = partial(_start_perception, scene, ovr, cp, sim.robot.n_joints, sink)
+    estimates, result, recording = live.run(start_perception, duration, loaded.name)
+    if result is None:
+        raise RuntimeError(f"control process failed: {cp.error or 'no result'}")
+    wall_s = time.monotonic() - wall0
+    rep = _report(loaded, sim, info, result, cp, live, duration, cams, estimates, emulator, wall_s)
+    if recording is not None:
+        recording["dropped"] += int(estimates.get("record_dropped", 0))
+        rep["recording"] = recording
+    return rep
+
+
+def _scene_sim(loaded: Any) -> Any:
+    """The scene built as ``hapticloud run`` builds it (here: the ground truth; raises if the
+    scene is infeasible)."""
+    from hapticloud.core.sim.closed_loop import ClosedLoopSim
+
+    return ClosedLoopSim(loaded)
+
+
+def _checked_scene(
+    scene: str, overrides: dict[str, Any] | None, duration_s: float | None, emulator: str
+) -> tuple[Any, Any, float]:
+    """The loaded scene, its simulation and the session's duration, or a ConfigError."""
     from hapticloud.core.errors import ConfigError
     from hapticloud.core.limits import MAX_DURATION_S
     from hapticloud.core.scene import load_scene
-    from hapticloud.core.sim.closed_loop import ClosedLoopSim
 
-    from ..control.process import EMULATOR_MODES, PERIOD_S, STATE_CODES, ControlProcess
-    from ..drives.scene_arm import SceneArmFactory
+    from ..control.process import EMULATOR_MODES, PERIOD_S
 
-    say = progress or (lambda _text: None)
     if emulator not in EMULATOR_MODES:
         raise ConfigError(f"emulator = {emulator!r}: expected one of {', '.join(EMULATOR_MODES)}")
-    ovr = dict(overrides) if overrides else None
-    loaded = load_scene(scene, ovr)
-    sim = ClosedLoopSim(loaded)  # perception here, and the ground truth; raises if infeasible
+    loaded = load_scene(scene, overrides)
+    sim = _scene_sim(loaded)
     cfg = loaded.config
     duration = cfg.scene.duration_s if duration_s is None else float(duration_s)
     if not (math.isfinite(duration) and duration > 0.0):
@@ -435,47 +305,97 @@ def run_session(
         raise ConfigError(
             f"loop.rate_hz = {cfg.loop.rate_hz:g}: the control process runs at {1 / PERIOD_S:g} Hz"
         )
-    cams = sim.cameras if cameras else []
-    cp = ControlProcess(
+    return loaded, sim, duration
+
+
+def _control_process(
+    scene: str,
+    overrides: dict[str, Any] | None,
+    emulator: str,
+    fifo_priority: int | None,
+    plant_substeps: int | None,
+    duration: float,
+) -> Any:
+    """The control process (not started) with the scene's arm in the emulated drives."""
+    from ..control.process import PERIOD_S, ControlProcess
+    from ..drives.scene_arm import SceneArmFactory
+
+    return ControlProcess(
         scene,
-        ovr,
+        overrides,
         emulator=emulator,
         fifo_priority=fifo_priority,
-        dynamics=SceneArmFactory(scene, ovr, plant_substeps),
+        dynamics=SceneArmFactory(scene, overrides, plant_substeps),
         log_ticks=int((duration + 10.0) / PERIOD_S),
     )
-    recorder = None
-    if record is not None:
-        from ..recording.runs import scene_recorder
 
-        recorder = scene_recorder(
-            record, loaded, "run --hardware", "monotonic", limit_bytes=record_limit_bytes
-        )
-    say(f"starting the control process and the emulated drives ({emulator}) ...")
-    wall0 = time.monotonic()
-    info = cp.start(timeout=120.0)
-    sampler = _HipSampler(cp.robot_state)
-    perception = None
-    estimates: dict[str, Any] = {}
-    snaps: list[Any] = []
-    waiter = _StateWaiter(cp, snaps)
-    startup_faults: list[str] = []
-    t_enabled = math.nan
-    result: dict[str, Any] | None = None
-    try:
-        if cams:
-            perception = _Perception(
-                scene, ovr, cp, sim.robot.n_joints, recorder.sink if recorder else None
-            )
-            perception.wait_ready()
-        startup_faults = waiter.ready(30.0)
-        cp.enable("hapticloud run --hardware")
-        t_enabled = waiter.wait((_ENABLED,), 5.0).t
-        if perception is not None:
-            perception.go(t_enabled)
-        say(f"session enabled; running {duration:g} s of {loaded.name} in real time ...")
-        t_end = t_enabled + duration
-        next_report = t_enabled + 1.0
+
+def _recorder(record: str | None, loaded: Any, limit_bytes: int | None) -> Any:
+    """A recorder for ``record`` (a path), or ``None``."""
+    if record is None:
+        return None
+    from ..recording.runs import scene_recorder
+
+    return scene_recorder(record, loaded, "run --hardware", "monotonic", limit_bytes=limit_bytes)
+
+
+class _LiveSession:
+    """This process's side of the running session: enables it, then samples the HIP and drains
+    the loop's snapshots (to the recorder too) until the scene's time is up."""
+
+    def __init__(self, cp: Any, hip_radius_m: float, recorder: Any, say: Callable[[str], None]):
+        self._cp = cp
+        self._hip_radius_m = hip_radius_m
+        self._recorder = recorder
+        self._say = say
+        self.sampler = _HipSampler(cp.robot_state)
+        self.snaps: list[Any] = []
+        self._waiter = _StateWaiter(cp, self.snaps)
+        self.startup_faults: list[str] = []
+        self.t_enabled = math.nan
+
+    def enable(self) -> None:
+        """READY (startup faults reset), then ENABLED; :attr:`t_enabled` is scene time 0."""
+        self.startup_faults = self._waiter.ready(30.0)
+        self._cp.enable("hapticloud run --hardware")
+        self.t_enabled = self._waiter.wait((_ENABLED,), 5.0).t
+
+    def _drain(self) -> None:
+        fresh = self._cp.snapshots()
+        self.snaps.extend(fresh)
+        if self._recorder is not None:
+            _record(self._recorder, fresh, self._hip_radius_m, self._say)
+
+    def run(
+        self, start_perception: Callable[[], Any] | None, duration: float, name: str
+    ) -> tuple[dict[str, Any], dict[str, Any] | None, dict[str, Any] | None]:
+        """Start the perception process (if any), enable, run ``duration`` s, stop everything
+        (the recorder last); returns the perception's figures, the control process's result and
+        the recording's."""
+        perception = None
+        estimates: dict[str, Any] = {}
+        try:
+            if start_perception is not None:
+                perception = start_perception()
+            self.enable()
+            if perception is not None:
+                perception.go(self.t_enabled)
+            self._say(f"session enabled; running {duration:g} s of {name} in real time ...")
+            self.run_for(duration)
+        finally:
+            try:
+                if perception is not None:
+                    estimates = _stop_perception(perception)
+            finally:
+                result = self._cp.stop(timeout=20.0)
+                recording = self._recorder.close() if self._recorder is not None else None
+        return estimates, result, recording
+
+    def run_for(self, duration: float) -> None:
+        """Until ``duration`` s after enable (then torque off) or the control process ends."""
+        cp = self._cp
+        t_end = self.t_enabled + duration
+        next_report = self.t_enabled + 1.0
         next_drain = 0.0
         while True:
             now = time.monotonic()
@@ -483,51 +403,15 @@ def run_session(
                 if cp.alive:
                     cp.disable()  # torque off at the end of the scene, before the teardown
                 break
-            sampler.sample()
+            self.sampler.sample()
             if now >= next_drain:
-                fresh = cp.snapshots()
-                snaps.extend(fresh)
-                if recorder is not None:
-                    _record(recorder, fresh, sim.hip_radius_m, say)
+                self._drain()
                 next_drain = now + 0.05
             if now >= next_report:
-                say(f"  t = {now - t_enabled:5.1f} s")
+                self._say(f"  t = {now - self.t_enabled:5.1f} s")
                 next_report += 1.0
             time.sleep(0.001)
-        fresh = cp.snapshots()
-        snaps.extend(fresh)
-        if recorder is not None:
-            _record(recorder, fresh, sim.hip_radius_m, say)
-    finally:
-        try:
-            if perception is not None:
-                estimates = perception.stop()
-        finally:
-            result = cp.stop(timeout=20.0)
-            recording = recorder.close() if recorder is not None else None
-    if result is None:
-        raise RuntimeError(f"control process failed: {cp.error or 'no result'}")
-    rep = _report(
-        loaded,
-        sim,
-        info,
-        result,
-        cp.error,
-        snaps,
-        sampler,
-        t_enabled,
-        duration,
-        cams,
-        estimates,
-        emulator,
-        time.monotonic() - wall0,
-        STATE_CODES,
-        startup_faults,
-    )
-    if recording is not None:
-        recording["dropped"] += int(estimates.get("record_dropped", 0))
-        rep["recording"] = recording
-    return rep
+        self._drain()
 
 
 def _record(
@@ -546,29 +430,70 @@ def _report(
     sim: Any,
     info: Mapping[str, Any],
     result: Mapping[str, Any],
-    error: str | None,
-    snaps: list[Any],
-    sampler: _HipSampler,
-    t_enabled: float,
+    cp: Any,
+    live: _LiveSession,
     duration: float,
     cams: list[Any],
     estimates: dict[str, Any],
     emulator: str,
     wall_s: float,
-    codes: Mapping[str, int],
-    startup_faults: list[str],
 ) -> dict[str, Any]:
+    from ..control.process import STATE_CODES
+
+    codes = STATE_CODES
+    snaps, t_enabled = live.snaps, live.t_enabled
     log = result["log"]
     state = log["state"]
     enabled = state == codes["enabled"]
     tau = log["tau_sent"]
     first_on = int(np.argmax(enabled)) if enabled.any() else len(state)
-    deadline = dict(result["deadline"])
     d_proj = np.where(enabled, log["d_proj_m"], np.nan)
-    approach = np.where(enabled, log["approach_mps"], np.nan)
-    capped = enabled & np.isfinite(log["approach_limit_mps"])
+    truth, verdict, space = _truth(
+        sim, live.sampler, t_enabled, log, enabled, d_proj, result, codes
+    )
+    return {
+        "mode": HARDWARE_MODE,
+        "scene": {
+            "name": loaded.name,
+            "path": loaded.path,
+            "description": loaded.config.scene.description,
+        },
+        "duration_s": duration,
+        "wall_time_s": wall_s,
+        "emulator": emulator,
+        "error": cp.error,
+        "process": {
+            k: info.get(k)
+            for k in ("sched_fifo", "sched_note", "mlockall", "bus", "emulator_info", "cpu")
+        },
+        "hip_radius_m": sim.hip_radius_m,
+        "patient": sim.patient is not None,
+        "ticks": int(result["ticks"]),
+        "enabled_ticks": int(enabled.sum()),
+        "reached_enabled": bool(enabled.any()),
+        "torque_before_enable_nm": float(np.abs(tau[:first_on]).max()) if first_on else 0.0,
+        "control": _control_figures(result, enabled),
+        "session": _session_figures(result, enabled, live.startup_faults),
+        "haptics": _haptics_figures(log, enabled, d_proj),
+        "estimates": _estimate_figures(estimates, cams, snaps),
+        "truth": truth,
+        "verdict": verdict.label,
+        "space": space,
+    }
 
-    # Ground truth from the sampled HIP, on the scene clock (0 = the enabled session's start).
+
+def _truth(
+    sim: Any,
+    sampler: _HipSampler,
+    t_enabled: float,
+    log: Mapping[str, Any],
+    enabled: Any,
+    d_proj: Any,
+    result: Mapping[str, Any],
+    codes: Mapping[str, int],
+) -> tuple[dict[str, Any], Verdict, dict[str, Any]]:
+    """Ground truth from the sampled HIP, on the scene clock (0 = the enabled session's start),
+    with the verdict and the space summary."""
     t = np.array(sampler.t)
     hips = np.array(sampler.hip).reshape(-1, 3)
     st = np.array(sampler.state)
@@ -604,10 +529,69 @@ def _report(
         }
     verdict, space = _verdict(log, enabled, t[on] if margins.size else t[:0], ts, margins, result)
     truth.update(verdict.to_json())
+    return truth, verdict, space
+
+
+def _control_figures(result: Mapping[str, Any], enabled: Any) -> dict[str, Any]:
+    """The control loop's timing, deadline and bus figures."""
+    log = result["log"]
+    deadline = dict(result["deadline"])
+    return {
+        "misses": int(deadline.get("misses", 0)),
+        "misses_per_10k": json_float(deadline.get("misses_per_10k")),
+        "overruns": deadline.get("overruns"),
+        "skipped": deadline.get("skipped"),
+        "tick_us": _spread(log["tick_us"]),
+        "tick_us_enabled": _spread(log["tick_us"][enabled]),
+        "body_us": _spread(log["body_us"]),
+        "lateness_us": _spread(log["lateness_us"]),
+        "deadline": {k: v for k, v in deadline.items() if not isinstance(v, str)},
+        "link_counters": dict(result["link_counters"]),
+        "link_events": [list(e) for e in result["link_events"][-20:]],
+        "emulator_events": [list(e) for e in result["emulator_events"][-20:]],
+    }
+
+
+def _session_figures(
+    result: Mapping[str, Any], enabled: Any, startup_faults: list[str]
+) -> dict[str, Any]:
+    """The session's transitions, the faults reset before enable, the watchdogs' reactions."""
+    reaction = result["log"]["reaction"][enabled]
+    return {
+        "transitions": [list(tr) for tr in result["transitions"]],
+        "startup_faults_reset": list(startup_faults),
+        "reactions": [list(rx) for rx in result["reactions"]],
+        "reaction_ticks": {
+            name: int((reaction == level).sum())
+            for level, name in enumerate(("none", "hold_surface", "damping", "torque_off"))
+        },
+    }
+
+
+def _haptics_figures(log: Mapping[str, Any], enabled: Any, d_proj: Any) -> dict[str, Any]:
+    """What the haptic tick saw while enabled: closest d_proj, approach speeds, capped ticks."""
+    approach = np.where(enabled, log["approach_mps"], np.nan)
+    capped = enabled & np.isfinite(log["approach_limit_mps"])
+    v_pos = approach[np.isfinite(approach)]
+    return {
+        "min_d_proj_m": json_float(np.nanmin(d_proj)) if np.isfinite(d_proj).any() else None,
+        "approach_mps": {
+            "max": json_float(v_pos.max()) if v_pos.size else None,
+            "p99": json_float(np.percentile(v_pos, 99)) if v_pos.size else None,
+            "median": json_float(np.median(v_pos)) if v_pos.size else None,
+        },
+        "approach_capped_ticks": int(capped.sum()),
+    }
+
+
+def _estimate_figures(
+    estimates: dict[str, Any], cams: list[Any], snaps: list[Any]
+) -> dict[str, Any]:
+    """The perception process's figures with what the loop made of its estimates."""
     fused_valid = [bool(s.fused_valid) for s in snaps if s.state == "enabled"]
     est_age = np.array([s.estimate_age_s for s in snaps if s.state == "enabled"])
-    est_out = dict(estimates)
-    est_out.update(
+    out = dict(estimates)
+    out.update(
         {
             "cameras": [c.spec.name for c in cams],
             "models": [c.spec.model for c in cams],
@@ -617,65 +601,7 @@ def _report(
             "snapshots": len(snaps),
         }
     )
-    v_pos = approach[np.isfinite(approach)]
-    return {
-        "mode": HARDWARE_MODE,
-        "scene": {
-            "name": loaded.name,
-            "path": loaded.path,
-            "description": loaded.config.scene.description,
-        },
-        "duration_s": duration,
-        "wall_time_s": wall_s,
-        "emulator": emulator,
-        "error": error,
-        "process": {
-            k: info.get(k)
-            for k in ("sched_fifo", "sched_note", "mlockall", "bus", "emulator_info", "cpu")
-        },
-        "hip_radius_m": sim.hip_radius_m,
-        "patient": sim.patient is not None,
-        "ticks": int(result["ticks"]),
-        "enabled_ticks": int(enabled.sum()),
-        "reached_enabled": bool(enabled.any()),
-        "torque_before_enable_nm": float(np.abs(tau[:first_on]).max()) if first_on else 0.0,
-        "control": {
-            "misses": int(deadline.get("misses", 0)),
-            "misses_per_10k": json_float(deadline.get("misses_per_10k")),
-            "overruns": deadline.get("overruns"),
-            "skipped": deadline.get("skipped"),
-            "tick_us": _spread(log["tick_us"]),
-            "tick_us_enabled": _spread(log["tick_us"][enabled]),
-            "body_us": _spread(log["body_us"]),
-            "lateness_us": _spread(log["lateness_us"]),
-            "deadline": {k: v for k, v in deadline.items() if not isinstance(v, str)},
-            "link_counters": dict(result["link_counters"]),
-            "link_events": [list(e) for e in result["link_events"][-20:]],
-            "emulator_events": [list(e) for e in result["emulator_events"][-20:]],
-        },
-        "session": {
-            "transitions": [list(tr) for tr in result["transitions"]],
-            "startup_faults_reset": list(startup_faults),
-            "reactions": [list(rx) for rx in result["reactions"]],
-            "reaction_ticks": {
-                name: int((log["reaction"][enabled] == level).sum())
-                for level, name in enumerate(("none", "hold_surface", "damping", "torque_off"))
-            },
-        },
-        "haptics": {
-            "min_d_proj_m": json_float(np.nanmin(d_proj)) if np.isfinite(d_proj).any() else None,
-            "approach_mps": {
-                "max": json_float(v_pos.max()) if v_pos.size else None,
-                "p99": json_float(np.percentile(v_pos, 99)) if v_pos.size else None,
-                "median": json_float(np.median(v_pos)) if v_pos.size else None,
-            },
-            "approach_capped_ticks": int(capped.sum()),
-        },
-        "estimates": est_out,
-        "truth": truth,
-        "verdict": verdict.label,
-        "space": space,
-    }
+    return out
 
 
 def _verdict(

@@ -8,7 +8,9 @@ A deadline missed by more than one period (rendering too slow) is skipped, not c
 counted in :attr:`~SimulatedCameraSource.deadlines_missed`.
 
 ``realtime=False`` starts no thread: :meth:`~SimulatedCameraSource.step` renders the next frame
-synchronously, so tests are deterministic.
+synchronously, so tests are deterministic, and :meth:`~SimulatedCameraSource.capture` renders one
+at a time a caller chooses, with the occluders and the region it chooses (what the perception
+worker, :mod:`hapticloud.hardware.perception`, does on its own schedule).
 
 Example
 -------
@@ -34,12 +36,15 @@ from hapticloud.core.config import StageConfig, param
 from hapticloud.core.errors import SourceError
 from hapticloud.core.geometry.primitives import Primitive
 from hapticloud.core.sim import SimDepthCamera, SimScene, SimWorld
+from hapticloud.core.sim.raygrid import Window
 
 from .base import CameraSource, Clock
 
 __all__ = ["SimulatedCameraSource", "SimulatedSourceConfig", "open_simulated", "simulated_pair"]
 
 OccludersAt = Callable[[float], Sequence[Primitive]]
+#: A world that moves: ``world_at(t)`` -> the world at simulation time ``t`` s.
+WorldAt = Callable[[float], SimWorld]
 
 
 @dataclass(frozen=True)
@@ -58,7 +63,8 @@ class SimulatedCameraSource(CameraSource):
     Parameters
     ----------
     camera, world
-        What to render and what it sees.
+        What to render and what it sees: a :class:`~hapticloud.core.sim.SimWorld`, or a function
+        of simulation time to one (bodies that move, e.g. a scene's ``MovingWorld.at``).
     occluders_at
         ``occluders_at(t)`` -> the robot's primitives at simulation time ``t`` s (none if None).
     rate_hz, phase_s
@@ -72,7 +78,7 @@ class SimulatedCameraSource(CameraSource):
     def __init__(
         self,
         camera: SimDepthCamera,
-        world: SimWorld,
+        world: SimWorld | WorldAt,
         occluders_at: OccludersAt | None = None,
         rate_hz: float = 30.0,
         phase_s: float = 0.0,
@@ -82,8 +88,9 @@ class SimulatedCameraSource(CameraSource):
         super().__init__(clock=clock)
         if not isinstance(camera, SimDepthCamera):
             raise SourceError(f"camera: expected SimDepthCamera, got {type(camera).__name__}")
-        if not isinstance(world, SimWorld):
-            raise SourceError(f"world: expected SimWorld, got {type(world).__name__}")
+        if not (isinstance(world, SimWorld) or callable(world)):
+            got = type(world).__name__
+            raise SourceError(f"world: expected SimWorld or t -> SimWorld, got {got}")
         self.config = SimulatedSourceConfig(rate_hz=rate_hz, phase_s=phase_s)
         self._camera = camera
         self._world = world
@@ -138,10 +145,13 @@ class SimulatedCameraSource(CameraSource):
         return self.config.phase_s + k / self.config.rate_hz
 
     # ----- producing ---------------------------------------------------------------------------
+    def _world_at(self, t: float) -> SimWorld:
+        return self._world if isinstance(self._world, SimWorld) else self._world(t)
+
     def _render(self, k: int) -> DepthFrame:
         t = self.frame_time(k)
         occluders = tuple(self._occluders_at(t)) if self._occluders_at is not None else ()
-        return self._camera.render(self._world, t, occluders)
+        return self._camera.render(self._world_at(t), t, occluders)
 
     def _publish(self, frame: DepthFrame) -> None:
         with self._cond:
@@ -159,6 +169,20 @@ class SimulatedCameraSource(CameraSource):
             raise SourceError(f"{self.name}: step() on a closed source")
         frame = self._render(self._k)
         self._k += 1
+        self._publish(frame)
+        return frame
+
+    def capture(
+        self, t: float, occluders: Sequence[Primitive] = (), roi: Window | None = None
+    ) -> DepthFrame:
+        """Render the frame of simulation time ``t`` now, with ``occluders`` in front of the
+        world and only the pixels of ``roi`` cast (all if None), and put it in the buffer
+        (stepping mode only; the caller keeps the schedule)."""
+        if self._realtime:
+            raise SourceError(f"{self.name}: capture() needs realtime=False")
+        if self.closed:
+            raise SourceError(f"{self.name}: capture() on a closed source")
+        frame = self._camera.render(self._world_at(t), t, occluders, roi=roi)
         self._publish(frame)
         return frame
 
