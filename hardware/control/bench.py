@@ -2,9 +2,9 @@
 
 Runs :class:`~.process.ControlProcess` (800 Hz on absolute deadlines, the drive emulator on the
 ``virtual`` CAN FD bus) for ``duration_s`` seconds of wall-clock time with the session ENABLED,
-optionally while the parent process runs perception for both simulated D435s (one
-:class:`~hapticloud.hardware.sources.SimulatedCameraSource` reader thread each, feeding a
-:class:`~hapticloud.core.perception.CameraPipeline` per camera, as the session process would).
+optionally while this process runs perception for both simulated D435s (the perception worker,
+:mod:`hapticloud.hardware.perception`, in a thread: rendered and processed as a session's
+perception process does, every estimate to the loop's fusion).
 
 Figures (µs): ``tick_us`` is the tick end to end, feedback in to command out: poll the feedback
 frames, commands, watchdogs, the fusion sample, the haptic tick, command + SYNC on the bus (and
@@ -23,11 +23,9 @@ body ran past the next deadline (:mod:`.deadline`).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import platform
-import threading
 import time
 from collections.abc import Mapping
 from typing import Any, TextIO
@@ -71,72 +69,53 @@ def _stats(a: np.ndarray) -> dict[str, float | int | None]:
     return summary(a, percentiles=(99,), count=False, digits=1)
 
 
-class _Perception:
-    """Both simulated cameras rendered and processed in this (the parent) process."""
+def bench_perception(control: ControlProcess | None, decimation: int = 1) -> Any:
+    """Both simulated D435s of the demo scene, 30 Hz, interleaved, as the perception worker
+    (:mod:`hapticloud.hardware.perception`) in a thread of this process, every estimate to the
+    control loop's fusion (the loop pays for adding them and refitting), as in a session. The
+    HIP is held 5 cm off the surface the front camera looks at (a busy crop, as in contact); no
+    robot links occlude. Started; :meth:`~hapticloud.hardware.perception.PerceptionWorker.close`
+    ends it."""
+    from hapticloud.core.perception import CameraPipeline
+    from hapticloud.core.sim import demo_scene
+    from hapticloud.core.threads import numpy_hugepages
 
-    def __init__(self, decimation: int = 1, control: ControlProcess | None = None) -> None:
-        from hapticloud.core.perception import CameraPipeline
-        from hapticloud.core.sim import demo_scene
-        from hapticloud.core.threads import numpy_hugepages
+    from ..perception import ChannelSpec, ControlSink, FixedPose, PerceptionWorker, RenderedChannel
+    from ..sources import open_source
 
-        from ..sources.simulated import simulated_pair
+    numpy_hugepages(False)  # as in a session's perception process (core/threads.py)
+    scene = demo_scene(decimation=decimation)
+    cam = scene.cameras[0]
+    probe = np.asarray(cam.origin_world) + 0.6 * np.asarray(cam.axis_world)
+    truth = scene.world.ground_truth(probe, 0.0)
+    hip = np.asarray(truth.point) + 0.05 * np.asarray(truth.normal)
+    channels = []
+    for i, c in enumerate(scene.cameras):
+        spec = ChannelSpec(c.name, rate_hz=30.0, phase_s=i * 0.5 / 30.0)
+        source = open_source(
+            "simulated",
+            camera=c,
+            world=scene.world,
+            rate_hz=30.0,
+            phase_s=spec.phase_s,
+            realtime=False,
+        )
+        channels.append(RenderedChannel(spec, source, CameraPipeline(camera=c.name)))
+    sinks = [ControlSink(control.estimate_connection)] if control is not None else []
+    worker = PerceptionWorker(channels, FixedPose(hip), sinks)
+    worker.start_thread(name="bench-perception")
+    return worker
 
-        numpy_hugepages(False)  # as in a session's perception process (core/threads.py)
-        scene = demo_scene(decimation=decimation)
-        # A HIP 5 cm off the surface the front camera looks at (a busy crop, as in contact).
-        cam = scene.cameras[0]
-        probe = np.asarray(cam.origin_world) + 0.6 * np.asarray(cam.axis_world)
-        truth = scene.world.ground_truth(probe, 0.0)
-        self.hip = np.asarray(truth.point) + 0.05 * np.asarray(truth.normal)
-        self.sources = simulated_pair(scene, rate_hz=30.0)
-        self.pipes = [CameraPipeline(camera=s.name) for s in self.sources]
-        self.processed = [0, 0]
-        # Estimates go to the control loop's fusion, as in a session (the loop pays for adding
-        # them and refitting); one pipe, two camera threads: a lock.
-        self._control = control
-        self._send_lock = threading.Lock()
-        self.errors: list[str] = []
-        self._stop = threading.Event()
-        self.threads = [
-            threading.Thread(target=self._run, args=(i,), name=f"bench-perception-{i}", daemon=True)
-            for i in range(len(self.sources))
-        ]
-        for th in self.threads:
-            th.start()
 
-    def _run(self, i: int) -> None:
-        src, pipe = self.sources[i], self.pipes[i]
-        while not self._stop.is_set():
-            try:
-                frame = src.read(0.1)
-                if frame is None:
-                    continue
-                est = pipe.process_depth(frame, self.hip)
-                self.processed[i] += 1
-                with self._send_lock:
-                    if self._control is not None:
-                        self._control.send_estimate(dataclasses.replace(est, t=time.monotonic()))
-            except Exception as exc:
-                self.errors.append(repr(exc))
-                if len(self.errors) > 10:
-                    return
-
-    def detach(self) -> None:
-        """Stop sending estimates to the control process (it is about to stop)."""
-        with self._send_lock:
-            self._control = None
-
-    def close(self) -> dict[str, Any]:
-        self._stop.set()
-        for th in self.threads:
-            th.join(2.0)
-        for s in self.sources:
-            s.close()
-        return {
-            "frames_processed": list(self.processed),
-            "frames_dropped": [s.frames_dropped for s in self.sources],
-            "errors": self.errors[:3],
-        }
+def _perception_figures(worker: Any) -> dict[str, Any]:
+    """The worker's counts as the bench reports them."""
+    st = worker.stats()
+    return {
+        "frames_processed": list(st["sent"].values()),
+        "frames_dropped": list(st["skipped_frames"].values()),
+        "perception_ms": st["perception_ms"],
+        "errors": [e.strip().splitlines()[-1] for e in worker.errors[:3]],
+    }
 
 
 def run_bench(
@@ -175,38 +154,87 @@ def run_bench(
     )
     info = cp.start()
     counters_before = machine_counters()
-    counters_run: dict[str, int] = {}
     perception = None
     try:
-        if with_perception:
-            perception = _Perception(control=cp)
-        # Let the drives settle, then enable: the measurement covers the ENABLED session only.
-        time.sleep(0.2)
-        cp.enable("bench")
-        time.sleep(0.1)
-        cp.snapshots()
-        t_mark = time.monotonic()
-        n_snaps = 0
-        end = t_mark + duration_s
-        while time.monotonic() < end:
-            time.sleep(0.05)
-            n_snaps += len(cp.snapshots())
-        if perception is not None:
-            perception.detach()  # perception goes on (the load), its estimates go nowhere
-        res = cp.stop(timeout=30.0)
+        perception = bench_perception(cp) if with_perception else None
+        run = _measure(cp, perception, duration_s)
         counters_run = _counter_deltas(counters_before, machine_counters())
-        floor = None
-        if baseline and res is not None:
-            body = res["log"]["body_us"][res["log"]["t"] >= t_mark]
-            work_us = float(np.median(body)) if body.size else 300.0
-            floor = null_loop(work_us, duration_s, cpu=control_cpu, fifo_priority=fifo_priority)
+        floor = _floor(run, duration_s, control_cpu, fifo_priority) if baseline else None
     finally:
-        perc = perception.close() if perception is not None else None
+        if perception is not None:
+            perception.close()
         res = cp.stop(timeout=30.0)
         if control_cpu is not None:
             os.sched_setaffinity(0, set(cpus))
     if res is None:
         raise RuntimeError(f"control process returned no result: {cp.error}")
+    out: dict[str, Any] = {
+        "scene": scene,
+        "bus": info.get("bus", ""),
+        "emulator": emulator,
+        "with_perception": with_perception,
+        "duration_s": duration_s,
+        **_window_figures(res, run["t_mark"]),
+        "sched_fifo": bool(info["sched_fifo"]),
+        "sched_note": info["sched_note"],
+        "mlockall": bool(info.get("mlockall")),
+        "control_cpu": info.get("cpu"),
+        "bus_cycle": _bus_cycle(res, run["t_mark"]),
+        "snapshots_received": run["snapshots"],
+        "snapshots_dropped": res["snapshots_dropped"],
+        "transitions": [t[1:] for t in res["transitions"]],
+        "perception": _perception_figures(perception) if perception is not None else None,
+        # Huge pages collapsed or faulted in while the loop ran, hypervisor steal (1/100 s).
+        "machine_counters_during_run": counters_run,
+        "baseline_null_loop": floor,
+        "isolate_cpu": control_cpu is not None,
+        "targets": TARGETS,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+    }
+    out["pass"] = bool(
+        out["ticks"]
+        and out["tick_us_p99"] <= TARGETS["tick_us_p99"]
+        and out["misses_per_10k"] <= TARGETS["misses_per_10k"]
+    )
+    return out
+
+
+def _floor(
+    run: Mapping[str, Any], duration_s: float, cpu: int | None, fifo_priority: int | None
+) -> dict[str, Any] | None:
+    """The null loop's figures for the loop's median body time in the window (see
+    :func:`run_bench`), or ``None`` without a result."""
+    if run["result"] is None:
+        return None
+    log = run["result"]["log"]
+    body = log["body_us"][log["t"] >= run["t_mark"]]
+    work_us = float(np.median(body)) if body.size else 300.0
+    return null_loop(work_us, duration_s, cpu=cpu, fifo_priority=fifo_priority)
+
+
+def _measure(cp: ControlProcess, perception: Any, duration_s: float) -> dict[str, Any]:
+    """Enable the session (after the drives settle), let it run ``duration_s`` s draining its
+    snapshots, then stop the loop: ``result`` (the control process's), ``t_mark`` (the start of
+    the measured window, :func:`time.monotonic`) and ``snapshots`` (received in it)."""
+    time.sleep(0.2)
+    cp.enable("bench")
+    time.sleep(0.1)
+    cp.snapshots()
+    t_mark = time.monotonic()
+    n_snaps = 0
+    end = t_mark + duration_s
+    while time.monotonic() < end:
+        time.sleep(0.05)
+        n_snaps += len(cp.snapshots())
+    if perception is not None:
+        for sink in perception.sinks:
+            sink.detach()  # perception goes on (the load), its estimates go nowhere
+    return {"result": cp.stop(timeout=30.0), "t_mark": t_mark, "snapshots": n_snaps}
+
+
+def _window_figures(res: Mapping[str, Any], t_mark: float) -> dict[str, Any]:
+    """The loop's timing and misses over the measured window (from ``t_mark`` on)."""
     log = res["log"]
     sel = log["t"] >= t_mark
     enabled = log["state"][sel] == 3
@@ -220,13 +248,7 @@ def run_bench(
     k = log["k"][sel]
     skipped = int(np.clip(np.diff(k) - 1, 0, None).sum()) if k.size > 1 else 0
     ticks = int(tick.size)
-    counters = res["link_counters"]
-    out: dict[str, Any] = {
-        "scene": scene,
-        "bus": info.get("bus", ""),
-        "emulator": emulator,
-        "with_perception": with_perception,
-        "duration_s": duration_s,
+    return {
         "ticks": ticks,
         "ticks_enabled_fraction": round(float(enabled.mean()), 4) if ticks else 0.0,
         "tick_us_median": round(float(np.median(tick)), 1) if ticks else None,
@@ -256,39 +278,24 @@ def run_bench(
         # Snapshots and refits put off to a later tick for want of time left in the period.
         "deferred": res.get("deferred"),
         "frames_read_ahead_median": float(np.median(log["ahead_frames"][sel])) if ticks else None,
-        "sched_fifo": bool(info["sched_fifo"]),
-        "sched_note": info["sched_note"],
-        "mlockall": bool(info.get("mlockall")),
-        "control_cpu": info.get("cpu"),
-        "bus_cycle": {
-            "commands_sent": counters["commands_sent"],
-            "syncs_sent": counters["syncs_sent"],
-            "feedback_received": counters["feedback_received"],
-            "feedback_missing": counters["feedback_missing"],
-            "feedback_late": counters["feedback_late"],
-            "incomplete_cycles_window": int((log["complete"][sel] == 0).sum()),
-            "send_errors": counters["send_errors"],
-            "heartbeats": counters["heartbeats"],
-            "schedule": res["bus_schedule"],
-        },
-        "snapshots_received": n_snaps,
-        "snapshots_dropped": res["snapshots_dropped"],
-        "transitions": [t[1:] for t in res["transitions"]],
-        "perception": perc,
-        # Huge pages collapsed or faulted in while the loop ran, hypervisor steal (1/100 s).
-        "machine_counters_during_run": counters_run,
-        "baseline_null_loop": floor,
-        "isolate_cpu": control_cpu is not None,
-        "targets": TARGETS,
-        "python": platform.python_version(),
-        "machine": platform.machine(),
     }
-    out["pass"] = bool(
-        ticks
-        and out["tick_us_p99"] <= TARGETS["tick_us_p99"]
-        and out["misses_per_10k"] <= TARGETS["misses_per_10k"]
-    )
-    return out
+
+
+def _bus_cycle(res: Mapping[str, Any], t_mark: float) -> dict[str, Any]:
+    """The drive bus's counters (the whole run) and its incomplete cycles in the window."""
+    log = res["log"]
+    counters = res["link_counters"]
+    return {
+        "commands_sent": counters["commands_sent"],
+        "syncs_sent": counters["syncs_sent"],
+        "feedback_received": counters["feedback_received"],
+        "feedback_missing": counters["feedback_missing"],
+        "feedback_late": counters["feedback_late"],
+        "incomplete_cycles_window": int((log["complete"][log["t"] >= t_mark] == 0).sum()),
+        "send_errors": counters["send_errors"],
+        "heartbeats": counters["heartbeats"],
+        "schedule": res["bus_schedule"],
+    }
 
 
 def _null_loop_child(work_s: float, duration_s: float, params: dict[str, Any], conn: Any) -> None:

@@ -393,3 +393,18 @@ def test_bad_arguments_are_refused() -> None:
         _worker([Fake(ChannelSpec("a"))], clock, time_scale=math.nan)
     with pytest.raises(RuntimeError, match="start"):
         _worker([Fake(ChannelSpec("a"))], clock).step()
+
+
+def test_the_bench_runs_both_cameras_through_the_worker_in_a_thread() -> None:
+    from hapticloud.hardware.control.bench import _perception_figures, bench_perception
+
+    worker = bench_perception(None, decimation=8)
+    try:
+        deadline = time.monotonic() + 10.0
+        while min(worker.stats()["sent"].values()) < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        worker.close()
+    fig = _perception_figures(worker)
+    assert min(fig["frames_processed"]) >= 2 and fig["errors"] == []
+    assert worker.camera_names == ["front", "right45"]
