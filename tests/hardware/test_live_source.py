@@ -1,4 +1,4 @@
-"""The live source (no Qt): frozen numbered snapshots, config requests, emergency stop."""
+"""hardware/live (no Qt): frozen numbered snapshots, config requests, emergency stop."""
 
 from __future__ import annotations
 
