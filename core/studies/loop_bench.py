@@ -26,6 +26,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from ..scene import load_scene
+from ..scene.assembly import assemble
 from ..sim.closed_loop import ClosedLoopSim
 from .run import DEADLINE_US, constraint_stats, control_stats, run_verdict
 from .verdict import UNSAFE_EXIT_CODE
@@ -49,7 +50,7 @@ def run_bench(
         loaded = loaded.with_overrides(
             {f"cameras.{c.name}.model": "oracle" for c in loaded.cameras}
         )
-    sim = ClosedLoopSim(loaded)
+    sim = ClosedLoopSim(assemble(loaded))
     gc.collect()
     gc.freeze()
     t0 = time.perf_counter()

@@ -1,9 +1,10 @@
 """``hapticloud run``: a headless closed-loop session of a scene, and its report against the truth.
 
-:func:`run_scene` builds the scene (:class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim`) and
-runs it; :func:`report` turns the record into the JSON report; :func:`sweep` repeats a scene over
-the values of one parameter (and, with ``compare_paper``, with the paper's formulation too: no
-surface-velocity feed-forward in either constraint), which is what Fig. 12 plots.
+:func:`run_scene` assembles the scene (:func:`~hapticloud.core.scene.assembly.assemble`) and runs
+it in the closed loop (:class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim`); :func:`report`
+turns the record into the JSON report; :func:`sweep` repeats a scene over the values of one
+parameter (and, with ``compare_paper``, with the paper's formulation too: no surface-velocity
+feed-forward in either constraint), which is what Fig. 12 plots.
 
 Report keys (all SI; ``None`` where a quantity does not exist, e.g. no cameras):
 
@@ -42,6 +43,7 @@ from ..control import ControlStatus
 from ..errors import ConfigError
 from ..loop import FORCE, POSITIONAL, VELOCITY
 from ..scene import Scene, load_scene
+from ..scene.assembly import assemble
 from ..sim.closed_loop import STATUS_CODES, ClosedLoopSim, RunRecord
 from .stats import json_float, summary
 from .verdict import Verdict, judge, space_summary
@@ -76,7 +78,7 @@ def run_scene(
         scene = scene.with_overrides(overrides)
     if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0.0):
         raise ConfigError(f"--duration = {duration_s}: must be a positive number of seconds")
-    sim = ClosedLoopSim(scene)
+    sim = ClosedLoopSim(assemble(scene))
     sim.frame_sink = frame_sink
     return sim.run(duration_s, progress)
 

@@ -4,8 +4,9 @@ scene's simulated patient pushing the handle.
 :class:`SceneArmFactory` is what :class:`~hapticloud.hardware.control.process.ControlProcess`
 takes as ``dynamics``: a small picklable object (the scene's name or path and its overrides) that
 the drive emulator calls with its robot model, in its own process, to get an
-:class:`~.emulator.ArmDynamics`. The scene is built there the way the deterministic simulation
-builds it (:class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim`): the same
+:class:`~.emulator.ArmDynamics`. The scene is built there by the builders the deterministic
+simulation uses (:func:`~hapticloud.core.scene.assembly.assemble`,
+:func:`~hapticloud.core.sim.closed_loop.build_plant`): the same
 :class:`~hapticloud.core.sim.patient.PatientArm` (intent script, muscle spring-damper, posture
 torque) and the same :class:`~hapticloud.core.sim.exo.ExoPlant` parameters (substeps, the hand's
 mass at the HIP, unmodelled joint friction). Each call of the returned :class:`SceneArm` advances
@@ -28,6 +29,7 @@ from typing import Any
 
 import numpy as np
 from hapticloud.core.robot.model import RobotModel
+from hapticloud.core.scene.assembly import Assembly
 from hapticloud.core.sim.exo import ExoPlant
 from hapticloud.core.sim.patient import PatientArm
 from numpy.typing import NDArray
@@ -107,32 +109,26 @@ class SceneArmFactory:
     overrides: Mapping[str, Any] | None = None
     substeps: int | None = None
 
-    def build(self, model: RobotModel | None = None) -> tuple[ArmDynamics, Any]:
-        """The dynamics and the :class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim` it was
-        built from (for its ``q0``, ``hip0`` and ground truth)."""
+    def build(self, model: RobotModel | None = None) -> tuple[ArmDynamics, Assembly]:
+        """The dynamics and the scene's :class:`~hapticloud.core.scene.assembly.Assembly` it was
+        built from (for its ``q0``, ``hip0``, patient and ground truth)."""
         from hapticloud.core.scene import load_scene
-        from hapticloud.core.sim.closed_loop import ClosedLoopSim
+        from hapticloud.core.scene.assembly import assemble
+        from hapticloud.core.sim.closed_loop import build_plant
 
         loaded = load_scene(self.scene, dict(self.overrides) if self.overrides else None)
         if loaded.cameras:
             # Only the patient and the plant are needed here: no rendering cameras.
             names = [c.name for c in loaded.cameras]
             loaded = loaded.with_overrides({f"cameras.{n}.model": "oracle" for n in names})
-        sim = ClosedLoopSim(loaded)
+        parts = assemble(loaded)
         if model is None:
             model = RobotModel.load(loaded.config.robot.urdf or None)
-        if sim.patient is None:
-            return RigidArm(model, EmulatorConfig().joint_damping_nms), sim
-        ref = sim.plant
-        plant = ExoPlant(
-            model,
-            sim.q0,
-            dt=ref.dt,
-            substeps=ref.substeps if self.substeps is None else int(self.substeps),
-            hand_mass_kg=ref.hand_mass_kg,
-            joint_friction_nms_per_rad=ref.friction,
-        )
-        return SceneArm(plant, sim.patient), sim
+        if parts.patient is None:
+            return RigidArm(model, EmulatorConfig().joint_damping_nms), parts
+        substeps = None if self.substeps is None else int(self.substeps)
+        plant = build_plant(loaded, model, parts.q0, held=True, substeps=substeps)
+        return SceneArm(plant, parts.patient), parts
 
     def __call__(self, model: RobotModel) -> ArmDynamics:
         return self.build(model)[0]
