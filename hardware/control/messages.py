@@ -5,20 +5,38 @@
   :data:`ESTIMATE_WIRE_FIELDS` as a dict (:func:`estimate_to_dict`) in the recordings' estimate
   channel and in the replay. There is no other estimate encoding in the project.
 - A frame time without an estimate (:func:`send_camera_frame`), for the camera watchdog.
-- :class:`ControlSnapshot`: what the control loop publishes every few ticks.
+- The parent's commands to the loop (:data:`Command`: :class:`Enable`, :class:`Disable`,
+  :class:`EmergencyStop`, :class:`Reset`, :class:`Configure`, :class:`InjectFault`,
+  :class:`Stop`) and the loop's replies (:class:`ControlSnapshot` every few ticks, :class:`Ready`
+  once its loop runs, :class:`Result` when it stopped, :class:`ChildFailed` when it raised): frozen
+  objects, pickled through the pipes as they are.
+- :class:`ControlConfig`: everything the control process is built from, checked in the parent.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any, NamedTuple
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
 __all__ = [
     "ESTIMATE_WIRE_FIELDS",
+    "ChildFailed",
+    "Command",
+    "Configure",
+    "ControlConfig",
     "ControlSnapshot",
+    "Disable",
+    "EmergencyStop",
+    "Enable",
+    "InjectFault",
+    "Ready",
+    "Reset",
+    "Result",
+    "Stop",
     "estimate_from_dict",
     "estimate_from_wire",
     "estimate_to_dict",
@@ -149,3 +167,116 @@ def send_estimate(conn: Any, est: Any) -> None:
 def send_camera_frame(conn: Any, camera: str, t: float) -> None:
     """Tell the loop that ``camera`` delivered a frame at ``t`` (for its watchdog)."""
     conn.send(("camera", (str(camera), float(t))))
+
+
+# ----- parent -> loop: the commands (one pipe, read by the loop without waiting) ------------------
+@dataclass(frozen=True)
+class Enable:
+    """Apply torque: READY -> ENABLED (refused by the session from anywhere else)."""
+
+    name: ClassVar[str] = "enable"
+    reason: str = "enable requested"
+
+
+@dataclass(frozen=True)
+class Disable:
+    """Torque off, drives disabled: ENABLED -> READY."""
+
+    name: ClassVar[str] = "disable"
+    reason: str = "disable requested"
+
+
+@dataclass(frozen=True)
+class EmergencyStop:
+    """Quick stop from any state."""
+
+    name: ClassVar[str] = "estop"
+    reason: str = "emergency stop"
+
+
+@dataclass(frozen=True)
+class Reset:
+    """Clear a FAULT or EMERGENCY_STOP: fault-reset controlwords first, decided when the drives'
+    fault bits cleared (refused once the reset ticks are spent)."""
+
+    name: ClassVar[str] = "reset"
+
+
+@dataclass(frozen=True)
+class Configure:
+    """New haptics (:class:`~hapticloud.core.loop.HapticsConfig`), fusion
+    (:class:`~hapticloud.core.fusion.FusionConfig`) and/or controller
+    (:class:`~hapticloud.core.control.ControllerConfig`, refused while ENABLED); ``None``: keep."""
+
+    name: ClassVar[str] = "configure"
+    haptics: Any = None
+    fusion: Any = None
+    controller: Any = None
+
+
+@dataclass(frozen=True)
+class InjectFault:
+    """Call ``method`` (one of :data:`~..drives.faults.FAULT_METHODS`) of the drive emulator's
+    fault injector with these arguments."""
+
+    name: ClassVar[str] = "inject"
+    method: str
+    args: tuple[Any, ...] = ()
+    kwargs: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Stop:
+    """End the loop (torque off, drives disabled on the way out)."""
+
+    name: ClassVar[str] = "stop"
+
+
+Command = Enable | Disable | EmergencyStop | Reset | Configure | InjectFault | Stop
+
+
+# ----- loop -> parent: the replies (besides the snapshots) ---------------------------------------
+@dataclass(frozen=True)
+class Ready:
+    """The loop runs: its start-up facts (pid, scheduling, CPU, memory lock, emulator, bus,
+    cameras, torque limits) as :meth:`ControlProcess.start` returns them."""
+
+    info: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Result:
+    """The loop stopped: its log and statistics, as :meth:`ControlProcess.stop` returns them."""
+
+    result: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class ChildFailed:
+    """The control process raised: its traceback."""
+
+    traceback: str
+
+
+# ----- what the control process is built from --------------------------------------------------
+@dataclass(frozen=True)
+class ControlConfig:
+    """Everything the control process is built from (see
+    :class:`~hapticloud.hardware.control.process.ControlProcess` for each field)."""
+
+    scene: str = "impacts"
+    overrides: Mapping[str, Any] | None = None
+    period_s: float = 1.0 / 800.0
+    fifo_priority: int | None = 80
+    spin_s: float = 200e-6
+    emulator: str = "process"
+    snapshot_every: int = 8
+    log_ticks: int = 1 << 16
+    duration_s: float | None = None
+    cpu: int | None = None
+    #: A :class:`~hapticloud.hardware.session.WatchdogConfig` (``None``: its defaults).
+    watchdogs: Any = None
+    damping_nms: float = 2.0
+    dynamics: Any = None
+    bus_timing: bool = True
+    sim_clock: bool = False
