@@ -20,8 +20,10 @@ from .ellipsoid import closest_point_on_ellipsoid
 from .noise import DepthNoiseConfig, apply_depth_noise, frame_key
 from .scenes import (
     BenchScene,
+    ContactScene,
     HipSamples,
     SimScene,
+    contact_bench_scenes,
     demo_scene,
     end_effector,
     paper_cameras,
@@ -39,6 +41,7 @@ __all__ = [
     "Body",
     "BoxBody",
     "CapsuleBody",
+    "ContactScene",
     "CylinderBody",
     "DepthNoiseConfig",
     "EllipsoidBody",
@@ -52,6 +55,7 @@ __all__ = [
     "SurfacePoint",
     "apply_depth_noise",
     "closest_point_on_ellipsoid",
+    "contact_bench_scenes",
     "decimated",
     "demo_scene",
     "end_effector",

@@ -414,3 +414,331 @@ def demo_scene(
         cameras=cams,
         description="seated patient: head, face, neck, torso, left arm; two D435s",
     )
+
+
+# ----- where bodies meet: creases, thin limbs, far bodies ----------------------------------------
+
+#: Scene classes of :func:`contact_bench_scenes`.
+CONTACT_CLASSES = ("crease", "thin_limb", "far_body")
+#: The HIP's closest distance to the patient at either end of an approach segment (m).
+_APPROACH_FAR_M, _APPROACH_NEAR_M = 0.11, 0.04
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ContactScene(BenchScene):
+    """A benchmark scene of one of :data:`CONTACT_CLASSES`, with the HIP's own path.
+
+    ``path`` holds straight HIP segments ``(start, end)`` (m, world), run forth and back in turn
+    (a crease crossed and followed); empty, the HIP approaches and leaves sampled spots of the
+    ``target`` along their normals between 0.11 and 0.04 m, as in the smooth-body scenes. Ground
+    truth is the closest point over all patient bodies (``world.ground_truth``), so at a crease
+    it switches from one body to the other as the HIP crosses.
+    """
+
+    scene_class: str
+    path: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = ()
+
+    def hip_track(self, frames: int, seed: int, segment_frames: int) -> list[FloatArray]:
+        """HIPs for ``frames`` frames, ``segment_frames`` per segment (seeded when sampled)."""
+        n_segments = -(-frames // segment_frames)
+        if self.path:
+            ends = [(np.array(a, dtype=float), np.array(b, dtype=float)) for a, b in self.path]
+            segments = [ends[i % len(ends)] for i in range(n_segments)]
+        else:
+            spots = self.sample_hips(
+                n_segments, seed=seed, distance_range_m=(_APPROACH_FAR_M, _APPROACH_FAR_M)
+            )
+            segments = [
+                (tr.point + _APPROACH_FAR_M * tr.normal, tr.point + _APPROACH_NEAR_M * tr.normal)
+                for tr in spots.truths
+            ]
+        hips = []
+        for i in range(frames):
+            seg, k = divmod(i, segment_frames)
+            s = k / max(segment_frames - 1, 1)
+            a, b = segments[seg]
+            if seg % 2:  # back again: the track stays continuous
+                a, b = b, a
+            hips.append(a + s * (b - a))
+        return hips
+
+
+def _contact(
+    name: str,
+    scene_class: str,
+    bodies: list[Body],
+    target: str,
+    look_at_point: ArrayLike,
+    wall_x_m: float,
+    description: str,
+    *,
+    path: tuple = (),
+    distance_m: float = 0.75,
+    with_occluder: bool = False,
+    noise: DepthNoiseConfig | None = None,
+) -> ContactScene:
+    world = SimWorld(bodies, _room(wall_x_m))
+    cams = paper_cameras(look_at_point, distance_m=distance_m, noise=noise)
+    return ContactScene(
+        name=name,
+        world=world,
+        cameras=cams,
+        target=target,
+        with_occluder=with_occluder,
+        description=description,
+        scene_class=scene_class,
+        path=tuple((tuple(map(float, a)), tuple(map(float, b))) for a, b in path),
+    )
+
+
+#: The segment along a crease runs where the body of the crossing's end is this much closer (m):
+#: on the switch line itself the truth would be a tie, its closest point and normal arbitrary.
+_ALONG_MARGIN_M = 0.004
+
+
+def _crossing(
+    bodies: list[Body], a: ArrayLike, b: ArrayLike, along: ArrayLike, reach_m: float
+) -> tuple[tuple[FloatArray, FloatArray], ...]:
+    """A segment across a crease (``a`` to ``b``, the closest body switching on the way) and one
+    along it, where the body closest at ``b`` is closer by ``_ALONG_MARGIN_M``."""
+    a, b, u = np.asarray(a, float), np.asarray(b, float), np.asarray(along, float)
+
+    def dist(p: FloatArray) -> FloatArray:
+        return np.array([body.closest_point(p).distance_m for body in bodies])
+
+    first, second = int(np.argmin(dist(a))), int(np.argmin(dist(b)))
+    if first == second:
+        raise InputError("crossing: the closest body does not switch between its ends")
+    lo, hi = 0.0, 1.0
+    for _ in range(40):  # bisection on d_first - d_second = margin
+        mid = 0.5 * (lo + hi)
+        d = dist(a + mid * (b - a))
+        lo, hi = (mid, hi) if d[first] - d[second] < _ALONG_MARGIN_M else (lo, mid)
+    centre = a + 0.5 * (lo + hi) * (b - a)
+    u = u / np.linalg.norm(u)
+    return ((a, b), (centre - reach_m * u, centre + reach_m * u))
+
+
+def contact_bench_scenes(
+    split: str = "heldout", noise: DepthNoiseConfig | None = None
+) -> dict[str, ContactScene]:
+    """Scenes where bodies meet, thin limbs and far bodies; ``split`` ``"train"`` or ``"heldout"``.
+
+    The two splits hold the same classes with other bodies, sizes, gaps and poses: the estimator
+    is tuned on ``"train"`` and judged on ``"heldout"`` (``hapticloud bench perception``).
+
+    - ``crease``: two bodies touching or a few mm apart (a forearm on the chest, a chin on the
+      neck, the inside of an elbow, a hand on a thigh); the HIP crosses the crease, so the true
+      closest surface switches between them, and follows it;
+    - ``thin_limb``: a finger-thin limb (radius ~1 cm) at the D435's resolution (1.7 mm per pixel
+      at 0.75 m), the wall 0.4 m behind;
+    - ``far_body``: a body 1.2-1.5 m from the camera (depth noise 3-5 mm there).
+    """
+    R = rotation_xyz
+    if split == "train":
+        chest = BoxBody(
+            name="torso", part="chest", center=[0.0, 0.0, 1.0], half_extents_m=[0.1, 0.18, 0.25]
+        )
+        arm_z = 1.0
+        forearm = CylinderBody(
+            name="forearm",
+            part="forearm",
+            a=[0.14, -0.15, arm_z],
+            b=[0.14, 0.15, arm_z],
+            radius_m=0.04,
+        )
+        face = EllipsoidBody(
+            name="face", part="face", center=[0.02, 0.0, 1.30], semi_axes_m=[0.08, 0.07, 0.1]
+        )
+        neck = CapsuleBody(
+            name="neck", part="neck", a=[0.0, 0.0, 1.0], b=[0.0, 0.0, 1.21], radius_m=0.055
+        )
+        finger = CylinderBody(
+            name="finger", part="hand", a=[0.0, -0.12, 1.0], b=[0.0, 0.12, 1.0], radius_m=0.01
+        )
+        head = SphereBody(
+            name="head", part="skull_forehead", center=[0.0, 0.0, 1.25], radius_m=0.09
+        )
+        return {
+            s.name: s
+            for s in (
+                _contact(
+                    "crease_forearm_on_chest",
+                    "crease",
+                    [chest, forearm],
+                    "forearm",
+                    [0.14, 0.0, 1.0],
+                    -0.3,
+                    "forearm r 4 cm lying on the chest",
+                    path=_crossing(
+                        [chest, forearm], [0.16, 0.0, 1.16], [0.16, 0.0, 1.07], [0, 1, 0], 0.08
+                    ),
+                ),
+                _contact(
+                    "crease_chin_on_neck",
+                    "crease",
+                    [face, neck],
+                    "neck",
+                    [0.05, 0.0, 1.17],
+                    -0.3,
+                    "chin (ellipsoid) above the neck",
+                    path=_crossing(
+                        [face, neck], [0.13, 0.0, 1.26], [0.10, 0.0, 1.08], [0, 1, 0], 0.05
+                    ),
+                ),
+                _contact(
+                    "thin_finger",
+                    "thin_limb",
+                    [finger],
+                    "finger",
+                    [0.0, 0.0, 1.0],
+                    -0.4,
+                    "finger r 1 cm across the view",
+                ),
+                _contact(
+                    "far_head",
+                    "far_body",
+                    [head],
+                    "head",
+                    [0.0, 0.0, 1.25],
+                    -0.35,
+                    "sphere head R 0.09 m 1.3 m away",
+                    distance_m=1.3,
+                ),
+            )
+        }
+    if split != "heldout":
+        raise InputError(f"split = {split!r}: expected 'train' or 'heldout'")
+    # Inside of an elbow: upper arm and forearm meeting at 100 deg, seen from the front.
+    elbow = np.array([0.12, 0.1, 1.0])
+    upper = CapsuleBody(
+        name="upper_arm",
+        part="upper_arm",
+        a=elbow + np.array([-0.02, 0.0, 0.26]),
+        b=elbow,
+        radius_m=0.045,
+    )
+    lower = CylinderBody(
+        name="forearm",
+        part="forearm",
+        a=elbow + np.array([0.005, 0.0, 0.0]),
+        b=elbow + np.array([0.04, -0.25, 0.04]),
+        radius_m=0.038,
+    )
+    # A hand resting 3 mm above a thigh (the thigh runs forward, seen end-on-ish).
+    thigh = CapsuleBody(
+        name="thigh", part="thigh", a=[-0.1, 0.0, 0.6], b=[0.35, 0.0, 0.6], radius_m=0.075
+    )
+    hand = EllipsoidBody(
+        name="hand",
+        part="hand",
+        center=[0.2, 0.0, 0.6 + 0.075 + 0.003 + 0.022],
+        semi_axes_m=[0.08, 0.045, 0.022],
+        rotation=R(0, -3, 25),
+    )
+    # A rounder chin over a slimmer, tilted neck, 2 mm apart.
+    chin = EllipsoidBody(
+        name="face",
+        part="face",
+        center=[0.03, 0.0, 1.315],
+        semi_axes_m=[0.075, 0.065, 0.09],
+        rotation=R(0, 10, 0),
+    )
+    neck = CapsuleBody(
+        name="neck", part="neck", a=[-0.01, 0.0, 1.0], b=[0.01, 0.0, 1.215], radius_m=0.048
+    )
+    pinky = CapsuleBody(
+        name="pinky", part="hand", a=[0.0, -0.08, 0.96], b=[0.03, 0.09, 1.05], radius_m=0.009
+    )
+    thumb = CylinderBody(
+        name="thumb", part="hand", a=[0.02, -0.1, 1.02], b=[-0.02, 0.1, 0.98], radius_m=0.011
+    )
+    far_ellipsoid = EllipsoidBody(
+        name="head",
+        part="skull_forehead",
+        center=[0.0, 0.0, 1.25],
+        semi_axes_m=[0.1, 0.078, 0.112],
+        rotation=R(0, -6, 18),
+    )
+    far_arm = CylinderBody(
+        name="forearm", part="forearm", a=[0.3, 0.22, 1.0], b=[0.2, -0.04, 0.97], radius_m=0.042
+    )
+    scenes = (
+        _contact(
+            "crease_inside_elbow",
+            "crease",
+            [upper, lower],
+            "forearm",
+            elbow,
+            -0.3,
+            "inside of an elbow: capsule r 4.5 cm and cylinder r 3.8 cm at 100 deg",
+            path=_crossing(
+                [upper, lower],
+                elbow + np.array([0.09, -0.07, 0.08]),
+                elbow + np.array([0.07, 0.07, -0.02]),
+                [0.0, -0.6, 0.8],
+                0.04,
+            ),
+        ),
+        _contact(
+            "crease_hand_on_thigh",
+            "crease",
+            [thigh, hand],
+            "hand",
+            [0.2, 0.0, 0.68],
+            -0.4,
+            "flat hand 3 mm above a thigh r 7.5 cm",
+            path=_crossing([thigh, hand], [0.2, 0.03, 0.76], [0.36, -0.02, 0.74], [0, 1, 0], 0.05),
+            with_occluder=False,
+        ),
+        _contact(
+            "crease_chin_on_neck_tilted",
+            "crease",
+            [chin, neck],
+            "neck",
+            [0.05, 0.0, 1.18],
+            -0.3,
+            "chin 2 mm above a tilted neck",
+            path=_crossing([chin, neck], [0.14, 0.02, 1.27], [0.1, -0.02, 1.1], [0, 1, 0], 0.05),
+        ),
+        _contact(
+            "thin_pinky_tilted",
+            "thin_limb",
+            [pinky],
+            "pinky",
+            [0.015, 0.005, 1.005],
+            -0.4,
+            "pinky capsule r 9 mm, tilted 30 deg",
+        ),
+        _contact(
+            "thin_thumb_far",
+            "thin_limb",
+            [thumb],
+            "thumb",
+            [0.0, 0.0, 1.0],
+            -0.4,
+            "thumb cylinder r 11 mm at 0.9 m",
+            distance_m=0.9,
+        ),
+        _contact(
+            "far_ellipsoid_head",
+            "far_body",
+            [far_ellipsoid],
+            "head",
+            [0.0, 0.0, 1.25],
+            -0.35,
+            "ellipsoid head 1.45 m away",
+            distance_m=1.45,
+        ),
+        _contact(
+            "far_forearm",
+            "far_body",
+            [far_arm],
+            "forearm",
+            [0.25, 0.09, 0.985],
+            -0.1,
+            "forearm r 4.2 cm 1.2 m away",
+            distance_m=1.2,
+        ),
+    )
+    return {s.name: s for s in scenes}
