@@ -82,6 +82,28 @@ class QuadricConfig(StageConfig):
     fallback: str = param(
         "paper", choices=("paper", "none"), doc="what answers when the surface fit fails"
     )
+    second_surface: bool = param(
+        True,
+        doc="points nearer the HIP than the fit allows: fit them as a second surface, take the "
+        "nearer (creases, bodies touching)",
+    )
+    second_surface_sigmas: float = param(
+        4.0,
+        lo=1.0,
+        hi=20.0,
+        doc="points this many residual scales nearer than the fitted surface (or off it) belong "
+        "to another surface",
+    )
+    second_surface_min_m: float = param(
+        0.0015,
+        lo=0.0,
+        hi=0.05,
+        unit="m",
+        doc="and at least this much nearer than the fitted surface",
+    )
+    second_surface_min_points: int = param(
+        16, lo=1, hi=10000, doc="fewer such nearer points: noise (flying pixels), not a surface"
+    )
 
 
 @dataclass(frozen=True)
@@ -131,7 +153,8 @@ class SurfaceFit:
     When ``valid`` is False, ``centroid`` and ``normal`` are finite placeholders and ``reason``
     says why. ``quality`` (0..1) says how much to trust a valid estimate; ``shells`` lists the
     paper method's per-shell fits (empty for the others); ``model`` names the surface model the
-    quadric estimator chose (or what it fell back to).
+    quadric estimator chose (or what it fell back to); ``surfaces`` is 2 when the points held two
+    surfaces (a crease) and the nearer one was taken, with ``reason`` saying so on a valid fit.
     """
 
     valid: bool
@@ -143,6 +166,8 @@ class SurfaceFit:
     method: str = ""
     model: str = ""
     n_points: int = 0
+    #: 2 when the points held two surfaces and the nearer was taken (``reason`` says how).
+    surfaces: int = 1
 
     def __post_init__(self) -> None:
         c, ok_c = _vec(self.centroid)

@@ -30,6 +30,7 @@ weights then reject part of the points and ``quality`` drops with the inlier fra
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -126,6 +127,23 @@ def _face_camera(normal: FloatArray, cam: FloatArray, to_hip: FloatArray) -> Flo
     return -normal if nz > 0.0 else normal
 
 
+class _Fit(NamedTuple):
+    """One surface fitted to HIP-relative points (m): its closest point ``origin``, unit
+    ``normal``, the model, the residual ``scale`` (m) and inlier share of the last robust pass,
+    and what the quality and the second-surface check need (candidates, weights, frame, coef)."""
+
+    origin: FloatArray
+    normal: FloatArray
+    model: str
+    scale: float
+    inliers: float
+    cand: FloatArray
+    robust: FloatArray
+    frame: FloatArray
+    frame_origin: FloatArray
+    coef: FloatArray
+
+
 def quadric_surface(
     points: FloatArray, hip: FloatArray, camera_axis: FloatArray, cfg: AbstractionConfig
 ) -> SurfaceFit:
@@ -148,6 +166,9 @@ def quadric_surface(
         ``model`` names the chosen surface model; ``quality`` in 0..1 combines the inlier
         fraction, the residual level against the noise floor and how well the data surround the
         closest point. Falls back to the paper's shells (``model="shells"``) when the fit fails.
+        ``surfaces`` is 2 when points of a second surface lay nearer the HIP than the first fit
+        (a crease, two bodies touching): the estimate is then the nearer one (``reason`` says
+        which), never a blend of the two.
     """
     qc = cfg.quadric
     n = len(points)
@@ -157,15 +178,44 @@ def quadric_surface(
     # A uniform subsample of about max_points is all the fits below use (speed).
     rel = points[:: max(1, n // qc.max_points)] - hip
     d2 = np.einsum("ij,ij->i", rel, rel)
-    bw = qc.bandwidth_m
+    fit = _fit_surface(rel, d2, camera_axis, qc)
+    if isinstance(fit, str):
+        return _fallback(points, hip, camera_axis, cfg, fit)
+    surfaces, note = 1, ""
+    if qc.second_surface:
+        fit, surfaces, note = _nearer_surface(fit, points - hip, rel, d2, camera_axis, qc)
+    origin, normal, cand, robust = fit.origin, fit.normal, fit.cand, fit.robust
 
+    # 4. Checks: the closest point must be near the data and, for full quality, surrounded by it.
+    off = cand - origin
+    gap_to_data = float(np.sqrt(np.min(np.einsum("ij,ij->i", off, off))))
+    if gap_to_data > qc.max_extrapolation_m:
+        return _fallback(
+            points, hip, camera_axis, cfg, f"closest point {gap_to_data:.3f} m from the data"
+        )
+    inlier = robust > 0.5
+    bw = qc.bandwidth_m
+    surround = _surround(off[inlier][:: max(1, len(off) // qc.coarse_points)], normal, bw)
+    noise_ratio = fit.scale / qc.noise_floor_m
+    quality = fit.inliers * surround / (1.0 + 0.01 * noise_ratio * noise_ratio)
+    return SurfaceFit(
+        True, hip + origin, normal, note, (), quality, "quadric", fit.model, n, surfaces
+    )
+
+
+def _fit_surface(
+    rel: FloatArray, d2: FloatArray, camera_axis: FloatArray, qc: QuadricConfig
+) -> _Fit | str:
+    """Steps 1-3 on HIP-relative points ``rel`` (m) with squared distances ``d2``; a string
+    says what failed."""
+    bw = qc.bandwidth_m
     # 1. Initial plane through the points near the nearest ones (a few skipped: flying pixels).
     k = min(len(rel) - 1, max(2, len(rel) // 200))
     d_near = float(np.sqrt(np.partition(d2, k)[k]))
     cap = rel[d2 < (d_near + bw) ** 2]
     start = _initial_plane(cap[:: max(1, len(cap) // qc.coarse_points)])
     if start is None:
-        return _fallback(points, hip, camera_axis, cfg, "no plane through the nearest points")
+        return "no plane through the nearest points"
     centroid, normal = start
     normal = _face_camera(normal, camera_axis, -centroid)
     origin = float(centroid @ normal) * normal  # foot of the HIP on that plane
@@ -190,8 +240,9 @@ def quadric_surface(
             cand if last else coarse, robust, origin, normal, models if last else coarse_models, qc
         )
         if isinstance(step, str):
-            return _fallback(points, hip, camera_axis, cfg, step)
+            return step
         origin_new, normal_new, model, frame, coef = step
+        frame_origin = origin
         if not last:
             # Robust weights for the next refit, from this fit's residuals (m).
             nxt = cand if it == qc.n_refits - 2 else coarse
@@ -203,19 +254,144 @@ def quadric_surface(
             inliers = float(np.count_nonzero(robust[near] > 0.5)) / max(1, int(near.sum()))
         origin = origin_new
         normal = _face_camera(normal_new, camera_axis, -origin)
+    return _Fit(origin, normal, model, scale, inliers, cand, robust, frame, frame_origin, coef)
 
-    # 4. Checks: the closest point must be near the data and, for full quality, surrounded by it.
-    off = cand - origin
-    gap_to_data = float(np.sqrt(np.min(np.einsum("ij,ij->i", off, off))))
-    if gap_to_data > qc.max_extrapolation_m:
-        return _fallback(
-            points, hip, camera_axis, cfg, f"closest point {gap_to_data:.3f} m from the data"
+
+#: A second surface must explain this share of its points at the noise scale (not outliers).
+_MIN_SECOND_INLIERS = 0.7
+#: Refits of each surface at a crease with the robust scale held at the measured noise.
+_TIGHT_REFITS = 2
+
+
+def _tighten(fit: _Fit, noise: float, camera_axis: FloatArray, qc: QuadricConfig) -> _Fit | str:
+    """Refit with the robust scale held at the noise of one surface (m).
+
+    Points of two surfaces inflate a fit's own residual scale, so its robust weights keep both
+    and the fit runs between them; with the scale of one surface's noise the refits settle on
+    the surface most of the points belong to and reject the other.
+    """
+    bw = qc.bandwidth_m
+    models = _MODEL_ORDER if qc.model == "auto" else (qc.model,)
+    scale = max(noise, qc.noise_floor_m)
+    for _ in range(_TIGHT_REFITS):
+        off = fit.cand - fit.frame_origin
+        res = local_quadric_distance(off @ fit.frame * (1.0 / bw), fit.coef) * bw
+        robust = _robust_weights(res, scale, qc)
+        step = _refit(fit.cand, robust, fit.origin, fit.normal, models, qc)
+        if isinstance(step, str):
+            return step
+        origin, normal, model, frame, coef = step
+        near = np.einsum("ij,ij->i", off, off) < (2.0 * bw) ** 2
+        inliers = float(np.count_nonzero(robust[near] > 0.5)) / max(1, int(near.sum()))
+        fit = _Fit(
+            origin,
+            _face_camera(normal, camera_axis, -origin),
+            model,
+            scale,
+            inliers,
+            fit.cand,
+            robust,
+            frame,
+            fit.origin,
+            coef,
         )
-    inlier = robust > 0.5
-    surround = _surround(off[inlier][:: max(1, len(off) // qc.coarse_points)], normal, bw)
-    noise_ratio = scale / qc.noise_floor_m
-    quality = inliers * surround / (1.0 + 0.01 * noise_ratio * noise_ratio)
-    return SurfaceFit(True, hip + origin, normal, "", (), quality, "quadric", model, n)
+    return fit
+
+
+def _nearer_surface(
+    fit: _Fit,
+    every: FloatArray,
+    rel: FloatArray,
+    d2: FloatArray,
+    camera_axis: FloatArray,
+    qc: QuadricConfig,
+) -> tuple[_Fit, int, str]:
+    """The nearer of two surfaces when points lie nearer the HIP than the fitted surface allows.
+
+    No point on the fitted surface is nearer the HIP than its closest point, so points nearer
+    than that by more than the noise (``second_surface_sigmas`` x the residual scale, at least
+    ``second_surface_min_m``) belong to another surface that the robust fit rejected: a body
+    resting on another, the two sides of a crease. The points the first surface does not explain
+    are then fitted on their own (both refitted with the robust scale held at the noise, then
+    the points segmented once more by which surface explains them), and the nearer of the two
+    surfaces answers. Nearer points that fit no surface of their own (outliers, flying pixels)
+    leave the first fit as it is.
+    """
+    dist1 = float(np.sqrt(fit.origin @ fit.origin))
+    noise = _patch_noise(rel, d2, qc)
+    margin = max(qc.second_surface_sigmas * noise, qc.second_surface_min_m)
+    limit = dist1 - margin
+    if limit <= 0.0:
+        return fit, 1, ""
+    # Every point counts here, not only the fits' subsample: near a crease the nearer surface
+    # may show only a narrow band of points within the margin.
+    d2_every = np.einsum("ij,ij->i", every, every)
+    closer = d2_every < limit * limit
+    n_closer = int(np.count_nonzero(closer))
+    if n_closer < qc.second_surface_min_points:
+        return fit, 1, ""
+    tight = _tighten(fit, noise, camera_axis, qc)
+    if isinstance(tight, _Fit):
+        fit = tight
+        dist1 = float(np.sqrt(fit.origin @ fit.origin))
+    bw = qc.bandwidth_m
+    res = local_quadric_distance((every - fit.frame_origin) @ fit.frame * (1.0 / bw), fit.coef)
+    # The other surface lies on the HIP's side of the fit (the fit rejected it, or ran between
+    # the two) and, where it matters, nearer the HIP than the first surface's closest point.
+    other = (res * bw > qc.second_surface_sigmas * noise) & (d2_every < dist1 * dist1)
+    n_other = int(np.count_nonzero(other))
+    second = None
+    if n_other >= qc.min_points:
+        step = max(1, n_other // qc.max_points)
+        rel2 = every[other][::step]
+        second = _fit_surface(rel2, d2_every[other][::step], camera_axis, qc)
+        if isinstance(second, _Fit):
+            second = _tighten(second, noise, camera_axis, qc)
+        if isinstance(second, _Fit):
+            # Segment once more: each point to the surface that explains it better; the second
+            # surface refitted on its own points only (the first pass's set holds some of the
+            # first surface where the two meet).
+            res2 = local_quadric_distance(
+                (every - second.frame_origin) @ second.frame * (1.0 / bw), second.coef
+            )
+            mine = (np.abs(res2) < np.abs(res)) & (
+                np.abs(res2) * bw < qc.second_surface_sigmas * noise
+            )
+            n_mine = int(np.count_nonzero(mine))
+            if n_mine >= qc.min_points:
+                step = max(1, n_mine // qc.max_points)
+                again = _fit_surface(every[mine][::step], d2_every[mine][::step], camera_axis, qc)
+                if isinstance(again, _Fit):
+                    again = _tighten(again, noise, camera_axis, qc)
+                if isinstance(again, _Fit):
+                    second = again
+    if not isinstance(second, _Fit) or second.inliers < _MIN_SECOND_INLIERS:
+        # Nearer points that make no surface of their own (flying pixels, stray noise): the
+        # first surface stands, and says so.
+        return fit, 1, f"{n_closer} points nearer than the surface fit no surface of their own"
+    dist2 = float(np.sqrt(second.origin @ second.origin))
+    if dist2 < dist1:
+        return second, 2, f"nearer of two surfaces (the other {dist1 - dist2:.4f} m farther)"
+    return fit, 2, f"nearer of two surfaces (the other {dist2 - dist1:.4f} m farther)"
+
+
+#: Radius (m) of the patch around the nearest point whose plane residuals measure the noise.
+_NOISE_PATCH_M = 0.007
+
+
+def _patch_noise(rel: FloatArray, d2: FloatArray, qc: QuadricConfig) -> float:
+    """Noise scale (m) of the surface nearest the HIP: residuals of a plane through the points
+    within ``_NOISE_PATCH_M`` of the nearest one (a few skipped: flying pixels). Small enough a
+    patch to hold one surface even at a crease, where a fit's residuals mix two."""
+    k = min(len(rel) - 1, max(2, len(rel) // 200))
+    seed = rel[int(np.argpartition(d2, k)[k])]
+    off = rel - seed
+    patch = rel[np.einsum("ij,ij->i", off, off) < _NOISE_PATCH_M * _NOISE_PATCH_M]
+    if len(patch) < 6:
+        return qc.noise_floor_m
+    centred = patch - patch.mean(axis=0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][2]
+    return _robust_scale(centred @ normal, qc.noise_floor_m)
 
 
 def _initial_plane(pts: FloatArray) -> tuple[FloatArray, FloatArray] | None:

@@ -93,6 +93,10 @@ class SurfaceEstimate:
     #: An invalid estimate that proves free space: no surface within this distance of ``hip``
     #: (m; the workspace radius when the frame saw the whole workspace empty), else 0.
     free_m: float = 0.0
+    #: Surfaces the points held near the HIP: 2 at a crease or where two bodies touch (the
+    #: estimate is then the nearer one, never a blend); ``note`` says which, on a valid estimate.
+    surfaces: int = 1
+    note: str = ""
 
     def __post_init__(self) -> None:
         centroid, ok_c = _frozen_vec3(self.centroid)

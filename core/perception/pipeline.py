@@ -187,6 +187,8 @@ class CameraPipeline:
             "n_points": int(rebuilt.points.shape[0]),
             "shells": fit.shells,
             "stage_ms": _ms(timer),
+            "surfaces": fit.surfaces,
+            "note": fit.reason if fit.valid else "",
         }
         if cfg.keep_points:
             extra["points"] = clusters.points

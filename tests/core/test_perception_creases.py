@@ -1,0 +1,76 @@
+"""Where bodies meet: the crease scenes and the estimate that takes the nearer of two surfaces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hapticloud.core.perception import AbstractionConfig, estimate_surface
+from hapticloud.core.sim import contact_bench_scenes
+
+
+def _cylinder_on_plane(rng: np.random.Generator, gap_m: float = 0.0) -> np.ndarray:
+    """A plane x = 0 (the chest) and a cylinder r 4 cm along y lying on it (the forearm)."""
+    yz = rng.uniform(-0.15, 0.15, size=(6000, 2))
+    plane = np.column_stack((np.zeros(len(yz)), yz))
+    theta = rng.uniform(-np.pi / 2, np.pi / 2, 2500)  # the half facing +x (the camera)
+    y = rng.uniform(-0.15, 0.15, len(theta))
+    r = 0.04
+    cyl = np.column_stack((r + gap_m + r * np.cos(theta), y, r * np.sin(theta)))
+    # The plane behind the cylinder is hidden from a camera on +x.
+    plane = plane[np.abs(plane[:, 2]) > r]
+    cloud = np.vstack((plane, cyl))
+    return cloud + rng.normal(0.0, 0.0005, cloud.shape)
+
+
+def test_the_nearer_of_two_surfaces_is_taken_not_a_blend():
+    rng = np.random.default_rng(3)
+    cloud = _cylinder_on_plane(rng)
+    # Above the cylinder: the plane 60 mm away, the cylinder 4 mm nearer.
+    hip = np.array([0.06, 0.0, 0.0])
+    for z in (0.085, 0.09):
+        hip = np.array([0.06, 0.0, z])
+        d_cyl = np.hypot(hip[0] - 0.04, hip[2]) - 0.04
+        fit = estimate_surface(cloud, hip, [-1.0, 0.0, 0.0])
+        assert fit.valid
+        err = fit.d_proj(hip, 0.0) - min(d_cyl, hip[0])
+        assert err < 0.5e-3, (z, err)  # never the farther surface
+        assert abs(err) < 1.5e-3, (z, err)
+    one = estimate_surface(
+        cloud,
+        hip,
+        [-1.0, 0.0, 0.0],
+        AbstractionConfig().replace_path("quadric.second_surface", False),
+    )
+    # Without the check the fit keeps the plane (the larger surface): farther than the truth.
+    assert one.d_proj(hip, 0.0) - min(d_cyl, hip[0]) > 1e-3
+
+
+def test_a_single_surface_with_flying_pixels_stays_one_surface():
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-0.12, 0.12, size=(6000, 2))
+    cloud = np.column_stack((xy, rng.normal(0.0, 0.0005, len(xy))))
+    flying = cloud[:300].copy()
+    flying[:, 2] += rng.uniform(0.002, 0.03, len(flying))
+    cloud = np.vstack((cloud, flying))
+    fit = estimate_surface(cloud, [0.0, 0.0, 0.06], [0.0, 0.0, -1.0])
+    assert fit.valid and fit.surfaces == 1
+    assert abs(fit.d_proj([0.0, 0.0, 0.06], 0.0) - 0.06) < 1e-3
+
+
+@pytest.mark.parametrize("split", ["train", "heldout"])
+def test_crease_paths_switch_the_closest_body(split):
+    scenes = contact_bench_scenes(split)
+    classes = {s.scene_class for s in scenes.values()}
+    assert classes == {"crease", "thin_limb", "far_body"}
+    for scene in scenes.values():
+        if scene.scene_class != "crease":
+            continue
+        bodies = {scene.world.ground_truth(h).body for h in scene.hip_track(30, 0, 15)}
+        assert len(bodies) == 2, scene.name
+
+
+def test_train_and_heldout_scenes_differ():
+    train, held = contact_bench_scenes("train"), contact_bench_scenes("heldout")
+    assert not set(train) & set(held)
+    with pytest.raises(ValueError):
+        contact_bench_scenes("test")
