@@ -180,26 +180,6 @@ class Wall(NamedTuple):
         return x - (self.normal @ (x - self.point)) * self.normal
 
 
-class _Space(NamedTuple):
-    """What one tick knows of the space around the HIP (:meth:`HapticLoop._space_around`)."""
-
-    surface: SurfacePoint | None  # the fused surface, the guard's held one, or none
-    hold_q: FloatArray | None  # the joint position to hold while stopped
-    state: SpaceState
-    fused_ok: bool  # the fusion gave a valid surface this tick
-
-
-class _SurfaceRows(NamedTuple):
-    """The surfaces' rows of one tick (:meth:`HapticLoop._surface_rows`)."""
-
-    n_rows: int  # haptic rows written into the buffer
-    factor: FloatArray | None  # Cholesky factor of M, if a force row needed it
-    normals: list[FloatArray]  # of the surfaces in reach
-    d_min: float  # free distance of the nearest surface (m; the clearance included)
-    approach: float  # its approach speed (m/s)
-    nearest: int  # which surface (TickResult.nearest)
-
-
 class TickResult(NamedTuple):
     """What one :meth:`HapticLoop.tick` returns.
 
@@ -442,19 +422,18 @@ class HapticLoop:
         """
         t0 = time.perf_counter()
         hip = self._hip_state(q, qd)
-        space = self._space_around(t, hip, fused)
+        primary, hold_q, space, fused_ok = self._space_around(t, hip, fused)
         tau_int = None if interaction_torque is None else np.asarray(interaction_torque, float)
-        found = self._surface_rows(hip, space.surface)
-        qdd5 = self._level5_acceleration(hip, space.hold_q, tau_int, found.factor)
-        m = found.n_rows
-        if found.normals and self.config.frictionless:
-            m = self._tangential_rows(hip.jacobian, found.normals, qdd5, m)
+        n_haptic, present, factor, normals, d_min, approach, nearest = self._surface_rows(
+            hip, primary
+        )
+        qdd5 = self._level5_acceleration(hip, hold_q, tau_int, factor)
+        m = n_haptic
+        if normals and self.config.frictionless:
+            m = self._tangential_rows(hip.jacobian, normals, qdd5, m)
         self._rows_written = m
-        out = self._control(hip, qdd5, tau_int, space.hold_q, m, found.n_rows)
-        present = 0
-        for bits in self._kind[: found.n_rows]:
-            present |= bits
-        self._n_haptic = found.n_rows
+        out = self._control(hip, qdd5, tau_int, hold_q, m, n_haptic)
+        self._n_haptic = n_haptic
         self._last_x = (out.qdd, out.tau)
         violation = float(out.level_slack[3])
         if not math.isfinite(violation):
@@ -463,17 +442,17 @@ class HapticLoop:
             out.tau,
             out.qdd,
             out.status,
-            found.d_min + self.config.clearance_m,
-            found.approach,
-            found.nearest,
+            d_min + self.config.clearance_m,
+            approach,
+            nearest,
             present & (POSITIONAL | VELOCITY | FORCE),
             violation,
-            space.fused_ok,
+            fused_ok,
             out.solve_us,
             out.step_us,
             (time.perf_counter() - t0) * 1e6,
             out.clamped,
-            space.state,
+            space,
         )
 
     def _hip_state(self, q: ArrayLike, qd: ArrayLike) -> HipState:
@@ -485,6 +464,8 @@ class HapticLoop:
         """
         robot = self.robot
         robot.update(q, qd)
+        if self._trusted:  # the shipped model hands its terms out in one call
+            return HipState(*robot.hip_terms(), self.hip_radius_m + self.config.clearance_m)
         return HipState(
             robot.hip_position(),
             robot.qd,
@@ -495,10 +476,15 @@ class HapticLoop:
             self.hip_radius_m + self.config.clearance_m,
         )
 
-    def _space_around(self, t: float, hip: HipState, fused: FusedSurface | None) -> _Space:
-        """What the tick knows of the space around the HIP: the fused surface, or the guard's
-        decision without one (hold the last surface, then stop); sets :attr:`last_fused` and the
-        approach-speed cap of this tick (:attr:`approach_limit_mps`, tightened by the guard)."""
+    def _space_around(
+        self, t: float, hip: HipState, fused: FusedSurface | None
+    ) -> tuple[SurfacePoint | None, FloatArray | None, SpaceState, bool]:
+        """What the tick knows of the space around the HIP: ``(surface, hold_q, state,
+        fused_ok)``, the surface the constraints act on (the fused one, the one the guard holds,
+        or none), the joint position to hold while stopped, the :class:`SpaceState`, and whether
+        the fusion gave a valid surface. Sets :attr:`last_fused` and this tick's approach-speed
+        cap (:attr:`approach_limit_mps`, tightened by the guard). Plain tuples on the hot path:
+        a named tuple's construction costs more than the rest of a free tick's bookkeeping."""
         perceived = fused is not None or self.fusion is not None
         if fused is None and self.fusion is not None:
             fused = self.fusion.sample(t)
@@ -506,7 +492,7 @@ class HapticLoop:
         fused_ok = fused is not None and fused.valid
         self._cap = self.approach_limit_mps
         if not perceived:
-            return _Space(None, None, SpaceState.KNOWN, fused_ok)
+            return None, None, SpaceState.KNOWN, fused_ok
         known, age = None, 0.0
         if fused_ok:
             centroid, normal, velocity = fused.centroid, fused.normal, fused.velocity
@@ -529,18 +515,25 @@ class HapticLoop:
         cap = decision.approach_limit_mps
         if cap is not None and (self._cap is None or cap < self._cap):
             self._cap = cap
-        return _Space(decision.surface, decision.hold_q, decision.state, fused_ok)
+        return decision.surface, decision.hold_q, decision.state, fused_ok
 
-    def _surface_rows(self, hip: HipState, primary: SurfacePoint | None) -> _SurfaceRows:
+    def _surface_rows(
+        self, hip: HipState, primary: SurfacePoint | None
+    ) -> tuple[int, int, FloatArray | None, list[FloatArray], float, float, int]:
         """Each surface's rows into the buffer: the shared motion row (positional and velocity,
-        :meth:`_motion_bound`) and the force row, from the constraints' kernels; and the
-        nearest surface's distance and approach speed (telemetry)."""
+        :meth:`_motion_bound`) and the force row, from the constraints' kernels.
+
+        Returns ``(n_rows, present, factor, normals, d_min, approach, nearest)``: the rows
+        written, their kind bits or-ed, the Cholesky factor of ``M`` if a force row needed it,
+        the normals of the surfaces in reach, and the nearest surface's free distance (m, the
+        clearance included), approach speed (m/s) and index (:attr:`TickResult.nearest`).
+        """
         cfg = self.config
         n = self.n_joints
         G, hv, kind = self._G, self._h, self._kind
         if self._rows_written:
             G[: self._rows_written] = 0.0  # rows are written sparsely below; clear last tick's
-        m = 0
+        m = present = 0
         factor = None
         normals: list[FloatArray] = []
         d_min, approach, nearest = math.inf, 0.0, -1
@@ -563,6 +556,7 @@ class HapticLoop:
                 np.negative(hs.J_c, out=G[m, :n])
                 hv[m] = bound
                 kind[m] = bits
+                present |= bits
                 m += 1
             if d <= force_reach:
                 if factor is None:
@@ -571,8 +565,9 @@ class HapticLoop:
                 w, hv[m] = self.force.bound(hs, factor, hip.nonlinear_effects, limit)
                 np.negative(w, out=G[m, n:])
                 kind[m] = FORCE
+                present |= FORCE
                 m += 1
-        return _SurfaceRows(m, factor, normals, d_min, approach, nearest)
+        return m, present, factor, normals, d_min, approach, nearest
 
     def _level5_acceleration(
         self,

@@ -421,6 +421,13 @@ class RobotModel:
         """
         return self._hip_acc
 
+    def hip_terms(
+        self,
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """``(hip_position, qd, hip_jacobian, hip_jdot_qd, mass_matrix, nonlinear_effects)`` of
+        the last :meth:`update` in one call (the control tick's ``HipState``, less the radius)."""
+        return self._hip_pos, self._qd, self._hip_jac, self._hip_acc, self._mass, self._nle
+
     def mass_matrix(self) -> FloatArray:
         """Joint-space inertia ``M(q)`` (kg m^2), shape (n, n), symmetric positive definite."""
         return self._mass

@@ -6,6 +6,7 @@ surface's arrays; the loop on a robot other than the shipped model (the public s
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import numpy as np
@@ -259,3 +260,118 @@ def test_finite_total_is_whether_the_plain_sum_is_finite(parts) -> None:
     with np.errstate(over="ignore", invalid="ignore"):
         plain = sum(float(np.sum(a)) for a in arrays if a is not None)
         assert finite_total(arrays) == math.isfinite(plain)
+
+
+# ----- each formula once: the rows and the tick's fast path call the same kernel --------------
+def _count_calls(monkeypatch: pytest.MonkeyPatch, owner: object, name: str) -> list[int]:
+    """Wrap ``owner.name`` to count its calls (still returning what it returns)."""
+    calls = [0]
+    original = getattr(owner, name)
+
+    def counted(*args, **kwargs):
+        calls[0] += 1
+        return original(*args, **kwargs)
+
+    static = isinstance(inspect.getattr_static(owner, name), staticmethod)
+    monkeypatch.setattr(owner, name, staticmethod(counted) if static else counted)
+    return calls
+
+
+@pytest.mark.parametrize(
+    ("cls_path", "name"),
+    [
+        ("hapticloud.core.haptics.positional.PositionalConstraint", "bound"),
+        ("hapticloud.core.haptics.velocity.VelocityConstraint", "bound"),
+        ("hapticloud.core.haptics.force.ForceConstraint", "bound"),
+    ],
+)
+def test_rows_and_tick_share_the_constraint_kernel(
+    robot: RobotModel, monkeypatch: pytest.MonkeyPatch, cls_path: str, name: str
+) -> None:
+    import importlib
+
+    from hapticloud.core.haptics import (
+        ForceConstraint,
+        HipState,
+        PositionalConstraint,
+        SurfacePoint,
+        VelocityConstraint,
+    )
+
+    module_name, cls_name = cls_path.rsplit(".", 1)
+    cls = getattr(importlib.import_module(module_name), cls_name)
+    q, qd = robot.q_home, np.array([0.1, -0.2, 0.4, 0.1, -0.3, 0.2])
+    hip = robot.hip_position_at(q)
+    wall = Wall.make("floor", hip - [0.0, 0.0, 0.04 + 0.003], [0.0, 0.0, 1.0], part="hand")
+    loop = HapticLoop(
+        robot,
+        build_controller(robot, None, [wall]),
+        HapticsConfig(clearance_m=0.0),
+        hip_radius_m=0.04,
+        dt=DT,
+        walls=[wall],
+    )
+    calls = _count_calls(monkeypatch, cls, name)
+    loop.tick(0.0, q, qd)
+    assert calls[0] == 1  # the tick's row came from the kernel
+    robot.update(q, qd)
+    state = HipState.from_model(robot, 0.04)
+    surface = SurfacePoint(wall.point, wall.normal, np.zeros(3), "hand")
+    constraint = {
+        "PositionalConstraint": PositionalConstraint,
+        "VelocityConstraint": VelocityConstraint,
+        "ForceConstraint": ForceConstraint,
+    }[cls_name]()
+    rows = constraint.rows(state, surface, DT)
+    assert calls[0] == 2  # and so did the row object's
+    assert rows.h.shape == (1,)
+
+
+def test_velocity_cap_uses_the_velocity_kernel(robot: RobotModel) -> None:
+    """The held surface's cap is the velocity row with v_c replaced by the cap: the same kernel."""
+    from hapticloud.core.haptics import HipState, SurfacePoint, VelocityConstraint, haptic_state
+
+    q, qd = robot.q_home, np.array([0.1, -0.2, 0.4, 0.1, -0.3, 0.2])
+    hip = robot.hip_position_at(q)
+    wall = Wall.make("floor", hip - [0.0, 0.0, 0.04 + 0.003], [0.0, 0.0, 1.0], part="hand")
+    cfg = HapticsConfig(clearance_m=0.0, positional_enabled=False)
+    loop = HapticLoop(
+        robot, build_controller(robot, None, [wall]), cfg, hip_radius_m=0.04, dt=DT, walls=[wall]
+    )
+    loop.approach_limit_mps = 0.01  # tighter than v_min: the cap sets the row
+    loop.tick(0.0, q, qd)
+    robot.update(q, qd)
+    hs = haptic_state(
+        HipState.from_model(robot, 0.04), SurfacePoint(wall.point, wall.normal, np.zeros(3))
+    )
+    expected = VelocityConstraint(cfg.velocity).bound(hs, DT, 0.01)
+    assert loop._h[0] == expected
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_joint_limit_check_is_the_rows_inequality(robot: RobotModel, seed: int) -> None:
+    """The shortcut's per-joint test and the limit tasks' rows accept the same x (away from the
+    tolerance band), and the stacked rows are the tasks' own bounds."""
+    rng = np.random.default_rng(seed)
+    ctrl = build_controller(robot, None, [])
+    check = ctrl.limit_check(DT, 0.0)
+    n = robot.n_joints
+    seen = set()
+    for _ in range(200):
+        q = rng.uniform(robot.q_min, robot.q_max)
+        qd = rng.normal(0, 1.0, n)
+        qdd = rng.normal(0, 200.0, n)
+        tau = rng.normal(0, 1.0, n) * robot.tau_max
+        x = np.concatenate([qdd, tau])
+        rows = [
+            ctrl.position_limit.rows(q, qd, DT),
+            ctrl.velocity_limit.rows(qd, DT),
+            ctrl.torque_limit.rows(),
+        ]
+        margins = np.concatenate([r.h - r.G @ x for r in rows])
+        if np.min(np.abs(margins)) < 1e-6:
+            continue  # within rounding of a bound: the two forms may round differently
+        held = bool(np.all(margins >= 0.0))
+        assert check.admits(tau.tolist(), q.tolist(), qd.tolist(), qdd.tolist()) is held
+        seen.add(held)
+    assert seen == {True, False}  # both outcomes were tested
