@@ -261,22 +261,23 @@ class ChildFailed:
 # ----- what the control process is built from --------------------------------------------------
 @dataclass(frozen=True)
 class ControlConfig:
-    """Everything the control process is built from (see
-    :class:`~hapticloud.hardware.control.process.ControlProcess` for each field)."""
+    """Everything the control process is built from, checked by
+    :class:`~hapticloud.hardware.control.process.ControlProcess` (where each field and its
+    default is documented)."""
 
-    scene: str = "impacts"
-    overrides: Mapping[str, Any] | None = None
-    period_s: float = 1.0 / 800.0
-    fifo_priority: int | None = 80
-    spin_s: float = 200e-6
-    emulator: str = "process"
-    snapshot_every: int = 8
-    log_ticks: int = 1 << 16
-    duration_s: float | None = None
-    cpu: int | None = None
+    scene: str
+    overrides: Mapping[str, Any] | None
+    period_s: float
+    fifo_priority: int | None
+    spin_s: float
+    emulator: str
+    snapshot_every: int
+    log_ticks: int
+    duration_s: float | None
+    cpu: int | None
     #: A :class:`~hapticloud.hardware.session.WatchdogConfig` (``None``: its defaults).
-    watchdogs: Any = None
-    damping_nms: float = 2.0
-    dynamics: Any = None
-    bus_timing: bool = True
-    sim_clock: bool = False
+    watchdogs: Any
+    damping_nms: float
+    dynamics: Any
+    bus_timing: bool
+    sim_clock: bool
