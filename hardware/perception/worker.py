@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import threading
 import time
 import traceback
@@ -268,18 +269,30 @@ class PerceptionWorker:
                 return
 
     def start_thread(
-        self, origin: float | None = None, name: str = "hapticloud-perception"
+        self,
+        origin: float | None = None,
+        name: str = "hapticloud-perception",
+        nice: int | None = None,
     ) -> None:
         """Run in a daemon thread of its own from ``origin``; :meth:`stop_thread` ends it. A
-        failure ends the thread and is kept in :attr:`errors`."""
+        failure ends the thread and is kept in :attr:`errors`. ``nice``: the thread's (and the
+        threads it starts') niceness (Linux; 19: what is left after everything else), so that
+        perception yields the CPUs to the processes around the control loop."""
         if self._thread is not None:
             raise RuntimeError("the perception thread is already running")
         self.start(origin)
         self._stop.clear()
-        self._thread = threading.Thread(target=self._thread_main, name=name, daemon=True)
+        self._thread = threading.Thread(
+            target=self._thread_main, args=(nice,), name=name, daemon=True
+        )
         self._thread.start()
 
-    def _thread_main(self) -> None:
+    def _thread_main(self, nice: int | None) -> None:
+        if nice is not None:
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+            except (OSError, AttributeError):
+                pass  # not Linux, or not allowed: perception at the usual priority
         try:
             self.run(self._stop.wait)
         except Exception:
