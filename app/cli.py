@@ -33,6 +33,7 @@ COMMANDS = (
     "recover",
     "import",
     "bench",
+    "study",
     "install-desktop",
 )
 DEFAULT_COMMAND = ["app"]

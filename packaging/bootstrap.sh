@@ -47,9 +47,9 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "bootstrap: installing Python packages into .venv"
   .venv/bin/python -m pip install -q --upgrade pip
   if [ -f requirements.lock ]; then
-    .venv/bin/python -m pip install -q -c requirements.lock -e ".[app,hardware,record,test]"
+    .venv/bin/python -m pip install -q -c requirements.lock -e ".[app,hardware,record,study,test]"
   else
-    .venv/bin/python -m pip install -q -e ".[app,hardware,record,test]"
+    .venv/bin/python -m pip install -q -e ".[app,hardware,record,study,test]"
   fi
   echo "$want" > "$stamp"
 fi
