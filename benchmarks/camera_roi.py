@@ -1,7 +1,7 @@
 """Simulated D435 frames for the perception: the full image vs only its region of interest.
 
 Renders ``--frames`` frames of each camera of the demo scene (``assets/scenes/demo.toml``, built
-as :class:`~hapticloud.core.sim.closed_loop.ClosedLoopSim` builds it) at decimation 1 and 2 (the
+as :func:`~hapticloud.core.scene.assembly.assemble` builds it) at decimation 1 and 2 (the
 scene's default), the HIP moving along the patient's scripted reach with the robot's link capsules
 (inverse kinematics at that HIP) as occluders. Each frame is rendered twice in turn, by two
 separate cameras (so neither reuses the other's ray-cast caches): the whole image, and only the
@@ -23,9 +23,8 @@ import time
 from typing import Any
 
 import numpy as np
-from hapticloud.core.camera import CameraIntrinsics
 from hapticloud.core.scene import load_scene
-from hapticloud.core.sim.closed_loop import ClosedLoopSim, camera_pose
+from hapticloud.core.scene.assembly import Assembly, assemble, build_cameras
 from hapticloud.core.sim.depth_camera import SimDepthCamera
 from hapticloud.core.sim.exo import solve_hip_ik
 from hapticloud.core.threads import settle_numerics
@@ -33,17 +32,11 @@ from hapticloud.core.threads import settle_numerics
 TARGET_ROI_MS = 3.0
 
 
-def _cameras(sim: ClosedLoopSim, decimation: int) -> list[SimDepthCamera]:
-    """The scene's d435 cameras at ``decimation`` (as ClosedLoopSim builds them)."""
-    out = []
-    for cam in sim.cameras:
-        spec = cam.spec
-        if spec.model != "d435":
-            continue
-        intr = CameraIntrinsics.d435(spec.width_px, spec.height_px, spec.hfov_deg)
-        pose = camera_pose(spec, sim.hip0)
-        out.append(SimDepthCamera(spec.name, intr, pose, spec.noise, decimation=decimation))
-    return out
+def _cameras(parts: Assembly, decimation: int) -> list[SimDepthCamera]:
+    """The scene's d435 cameras at ``decimation``, built as the assembly builds them."""
+    names = [cam.spec.name for cam in parts.cameras if cam.spec.model == "d435"]
+    scene = parts.scene.with_overrides({f"cameras.{n}.decimation": decimation for n in names})
+    return [cam.camera for cam in build_cameras(scene, parts.hip0) if cam.spec.name in names]
 
 
 def _stats(ms: list[float]) -> dict[str, float]:
@@ -53,7 +46,7 @@ def _stats(ms: list[float]) -> dict[str, float]:
 
 def run(frames: int, warmup: int, decimations: list[int]) -> dict[str, Any]:
     settle_numerics(1)  # one BLAS thread, as the perception process runs
-    sim = ClosedLoopSim(load_scene("demo"))
+    sim = assemble(load_scene("demo"))
     crop = sim.scene.config.perception.crop
     rate = sim.scene.cameras[0].rate_hz
     assert sim.patient is not None  # the demo scripts the patient's reach

@@ -248,9 +248,6 @@ class ClosedLoopSim:
         return self.parts.true_margin(hip, t)
 
     # ----- cameras --------------------------------------------------------------------------------
-    def _capture(self, cam: SimCamera, t: float, q: FloatArray, hip: FloatArray) -> SurfaceEstimate:
-        return self.parts.capture(cam, t, q, hip, self.rng, self.frame_sink)
-
     def _lost(self, spec: CameraSpec, t: float) -> bool:
         """A frame that never arrives: the camera stopped, or the link dropped it (seeded)."""
         if 0.0 <= spec.stop_s <= t:
@@ -296,7 +293,7 @@ class ClosedLoopSim:
                     cam.frames += 1
                     if self._lost(cam.spec, t):
                         continue
-                    est = self._capture(cam, t, state.q, state.hip)
+                    est = self.parts.capture(cam, t, state.q, state.hip, self.rng, self.frame_sink)
                     admitted = admit(est, cam.spec.min_quality, cam.spec.fuse_fallbacks)
                     if admitted:
                         pending.append((t + cam.spec.latency_s, est))

@@ -105,9 +105,10 @@ def run_child(config: ControlConfig, ends: ChildEnds) -> None:
 
 
 def build_scene(config: ControlConfig) -> tuple[Any, Any, dict[str, Any]]:
-    """The scene, its simulator (the haptic loop, fusion, walls, q0) and its cameras by name."""
+    """The scene, its assembled parts (the haptic loop, fusion, walls, q0) and its cameras by
+    name."""
     from hapticloud.core.scene import load_scene
-    from hapticloud.core.sim.closed_loop import ClosedLoopSim
+    from hapticloud.core.scene.assembly import assemble
 
     loaded = load_scene(config.scene, dict(config.overrides) if config.overrides else None)
     camera_specs = {c.name: c for c in loaded.cameras}
@@ -115,7 +116,7 @@ def build_scene(config: ControlConfig) -> tuple[Any, Any, dict[str, Any]]:
         # The cameras are the parent's (perception runs outside the loop): the scene's own
         # simulated cameras would render inside the tick.
         loaded = loaded.with_overrides({f"cameras.{name}.model": "oracle" for name in camera_specs})
-    return loaded, ClosedLoopSim(loaded), camera_specs
+    return loaded, assemble(loaded), camera_specs
 
 
 class _Rig:

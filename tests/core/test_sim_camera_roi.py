@@ -248,7 +248,7 @@ def test_perception_on_roi_frames_equals_full_frames(demo: ClosedLoopSim) -> Non
 
 
 def test_closed_loop_capture_sees_what_a_full_render_shows() -> None:
-    """``ClosedLoopSim._capture`` (ROI render) gives the estimate a full frame gives."""
+    """``Assembly.capture`` (ROI render) gives the estimate a full frame gives."""
     sim = ClosedLoopSim(load_scene("demo"))
     config = sim.scene.config.perception
     for cam in sim.cameras:
@@ -257,7 +257,7 @@ def test_closed_loop_capture_sees_what_a_full_render_shows() -> None:
         for t in [0.0, 0.5, 1.0, 1.5, 2.0]:
             hip = np.asarray(sim.patient.intent.position(t))
             q, _ = solve_hip_ik(sim.robot, hip, q)
-            got = sim._capture(cam, t, q, hip)
+            got = sim.parts.capture(cam, t, q, hip, sim.rng)
             capsules = sim.robot.link_capsules(q)
             frame = cam.camera.render(sim.world.at(t), t, occluders=capsules)
             want = pipe.process_depth(frame, hip, exclude=capsules)
@@ -528,12 +528,13 @@ def test_closed_loop_renders_the_roi_unless_a_recorder_takes_the_frames() -> Non
         return render(*args, **kwargs)
 
     cam.camera.render = spy  # type: ignore[method-assign]
-    sim._capture(cam, 0.0, sim.q0, sim.hip0)
+    sim.parts.capture(cam, 0.0, sim.q0, sim.hip0, sim.rng)
     roi = cam.camera.workspace_roi(sim.hip0, sim.scene.config.perception.crop)
     assert asked == [roi] and roi != EMPTY_ROI
     stored: list[tuple] = []
-    sim.frame_sink = lambda *frame: stored.append(frame)
-    sim._capture(cam, 1 / 30, sim.q0, sim.hip0)
+    sim.parts.capture(
+        cam, 1 / 30, sim.q0, sim.hip0, sim.rng, frame_sink=lambda *frame: stored.append(frame)
+    )
     assert asked[-1] is None
     depth = stored[-1][0].depth_m
     outside = np.ones(depth.shape, dtype=bool)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hapticloud.core.control import ControllerConfig
 from hapticloud.core.scene import load_scene
-from hapticloud.core.sim.closed_loop import ClosedLoopSim
+from hapticloud.core.scene.assembly import assemble
 from hapticloud.hardware.control.messages import (
     Configure,
     Disable,
@@ -33,7 +33,7 @@ def scene():
     loaded = load_scene("impacts")
     specs = {c.name: c for c in loaded.cameras}
     loaded = loaded.with_overrides({f"cameras.{name}.model": "oracle" for name in specs})
-    return ClosedLoopSim(loaded), specs
+    return assemble(loaded), specs
 
 
 def make_tick(scene, **kwargs) -> ControlTick:
