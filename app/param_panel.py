@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from hapticloud.assets import asset_path
 from hapticloud.core.config import ParamInfo, StageConfig
 from hapticloud.core.errors import ConfigError
 from PyQt6 import QtCore, QtGui, QtWidgets
@@ -533,8 +534,24 @@ class ParamPanel(QtWidgets.QWidget):
             button.setToolTip(tip)
             button.clicked.connect(slot)
             bar.addWidget(button)
+        bar.addWidget(self._shipped_presets())
         bar.addStretch(1)
         return bar
+
+    def _shipped_presets(self) -> QtWidgets.QToolButton:
+        """The presets hapticloud ships (assets/presets: fast, balanced, accurate; made by
+        ``hapticloud study``, docs/trade-study.md)."""
+        button = QtWidgets.QToolButton(self)
+        button.setText("Presets")
+        button.setToolTip("shipped presets from the speed/accuracy study (docs/trade-study.md)")
+        button.setPopupMode(QtWidgets.QToolButton.ToolButtonPopupMode.InstantPopup)
+        menu = QtWidgets.QMenu(button)
+        for path in sorted(asset_path("presets").glob("*.toml")):
+            action = menu.addAction(path.stem)
+            action.triggered.connect(lambda _=False, p=path: self.load_preset(p))
+        button.setMenu(menu)
+        self.shipped_presets = menu
+        return button
 
     def _build_tabs(self) -> None:
         by_top: dict[str, list[ParamInfo]] = {}
