@@ -1,8 +1,8 @@
 """The simulated scenes a live source runs: built-in ones and scene files, with what the view
 draws of them (display meshes, cameras, the robot's shapes).
 
-Scene-file scenes are built by the closed-loop simulator's assembly (:func:`_assembled`), the
-one place here that builds it.
+Scene-file scenes are built by the scene's assembly
+(:func:`~hapticloud.core.scene.assembly.assemble`, called in :func:`_assembled` only).
 """
 
 from __future__ import annotations
@@ -132,9 +132,9 @@ def _file_scene_spec(name: str) -> SceneSpec:
 
 def _assembled(loaded: Any) -> Any:
     """The loaded scene's world, cameras and robot as the closed loop builds them."""
-    from hapticloud.core.sim.closed_loop import ClosedLoopSim
+    from hapticloud.core.scene.assembly import assemble
 
-    return ClosedLoopSim(loaded)
+    return assemble(loaded)
 
 
 def build_scene(settings: SimSettings) -> SimScene:

@@ -62,7 +62,7 @@ def scene_tables(scene: str) -> dict[str, Any]:
     """The scene's ``haptics`` and ``controller`` tables as its control process uses them: the
     panel's Haptics and Controller tabs start from these, not from the library defaults."""
     from hapticloud.core.scene import load_scene
-    from hapticloud.core.sim.closed_loop import scene_controller_config
+    from hapticloud.core.scene.assembly import scene_controller_config
 
     loaded = load_scene(CONTROL_SCENES.get(scene, scene))
     return {"haptics": loaded.config.haptics, "controller": scene_controller_config(loaded)}

@@ -1,6 +1,6 @@
 """A scene's cameras as the worker's channels, and the control process's robot as its feed.
 
-:func:`scene_channels` turns a built scene (the ``ClosedLoopSim`` of ``hapticloud run``) into
+:func:`scene_channels` turns an assembled scene (as ``hapticloud run`` builds it) into
 channels: a ``d435`` camera is a stepping ``"simulated"`` source from the registry over the
 scene's moving world, with the scene's pipeline; an ``oracle`` camera is the scene's oracle
 (the true closest point with the scene's noise, no image). :func:`link_occluders` gives the
@@ -45,37 +45,42 @@ def channel_spec(cam: Any) -> ChannelSpec:
 
 
 class OracleChannel(CameraChannel):
-    """A scene's oracle camera: the true closest body point with the scene's noise."""
+    """A scene's oracle camera: the true closest body point with the scene's noise (``rng``:
+    the scene's seeded stream, one for all of its oracles, as the closed loop draws it)."""
 
     sees_occluders = False
 
-    def __init__(self, sim: Any, cam: Any) -> None:
+    def __init__(self, parts: Any, cam: Any, rng: np.random.Generator) -> None:
         super().__init__(channel_spec(cam))
-        self._sim = sim
+        self._parts = parts
         self._cam = cam
+        self._rng = rng
 
     def capture(
         self, t_scene: float, pose: RobotPose, occluders: Sequence[Any], full_frame: bool
     ) -> Capture:
-        # The oracle's formula (and its noise stream) is the simulator's; it has no public name.
-        return Capture(self._sim._capture(self._cam, t_scene, pose.q, pose.hip))
+        return Capture(self._parts.oracle_estimate(self._cam, t_scene, pose.hip, self._rng))
 
     def close(self) -> None:
         """Nothing to release: the scene is the caller's."""
 
 
-def scene_channels(sim: Any) -> list[CameraChannel]:
-    """The channels of a built scene's cameras (see the module docstring)."""
+def scene_channels(parts: Any) -> list[CameraChannel]:
+    """The channels of an assembled scene's cameras (an
+    :class:`~hapticloud.core.scene.assembly.Assembly`; see the module docstring)."""
+    from hapticloud.core.scene.assembly import seeded_noise
+
+    rng = seeded_noise(parts.scene)
     channels: list[CameraChannel] = []
-    for cam in sim.cameras:
+    for cam in parts.cameras:
         if cam.camera is None:
-            channels.append(OracleChannel(sim, cam))
+            channels.append(OracleChannel(parts, cam, rng))
             continue
         spec = channel_spec(cam)
         source = open_source(
             "simulated",
             camera=cam.camera,
-            world=sim.world.at,
+            world=parts.world.at,
             rate_hz=spec.rate_hz,
             phase_s=spec.phase_s,
             realtime=False,
@@ -114,11 +119,12 @@ class StateBlockFeed:
 
 
 def scene_sim(scene: str, overrides: dict[str, Any] | None) -> Any:
-    """The scene built as ``hapticloud run`` builds it (its cameras, world and robot)."""
+    """The scene's parts as ``hapticloud run`` builds them (its cameras, world and robot: an
+    :class:`~hapticloud.core.scene.assembly.Assembly`)."""
     from hapticloud.core.scene import load_scene
-    from hapticloud.core.sim.closed_loop import ClosedLoopSim
+    from hapticloud.core.scene.assembly import assemble
 
-    return ClosedLoopSim(load_scene(scene, overrides))
+    return assemble(load_scene(scene, overrides))
 
 
 def session_worker(

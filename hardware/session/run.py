@@ -22,7 +22,7 @@ What runs where:
 - **this process**: enables the session, drains the loop's snapshots and samples the robot's HIP
   from the same block (every ~1 ms) for the ground truth: the true margin of the HIP sphere to
   the scene's bodies and walls
-  (:meth:`~hapticloud.core.sim.closed_loop.ClosedLoopSim.true_margin`), which never reaches the
+  (:meth:`~hapticloud.core.scene.assembly.Assembly.true_margin`), which never reaches the
   controller.
 
 Scene time 0 is the first tick of the enabled session (the patient's script starts when the
@@ -276,9 +276,9 @@ def run_session(
 def _scene_sim(loaded: Any) -> Any:
     """The scene built as ``hapticloud run`` builds it (here: the ground truth; raises if the
     scene is infeasible)."""
-    from hapticloud.core.sim.closed_loop import ClosedLoopSim
+    from hapticloud.core.scene.assembly import assemble
 
-    return ClosedLoopSim(loaded)
+    return assemble(loaded)
 
 
 def _checked_scene(
