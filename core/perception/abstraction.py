@@ -168,6 +168,9 @@ class SurfaceFit:
     n_points: int = 0
     #: 2 when the points held two surfaces and the nearer was taken (``reason`` says how).
     surfaces: int = 1
+    #: The fit's residual scale (m; robust, at the points it kept): how noisy the points the
+    #: estimate stands on were. 0 when the method measures none (the paper's shells).
+    residual_m: float = 0.0
 
     def __post_init__(self) -> None:
         c, ok_c = _vec(self.centroid)
@@ -185,6 +188,8 @@ class SurfaceFit:
             object.__setattr__(self, "reason", self.reason or "non-finite centroid or normal")
         q = float(self.quality)
         object.__setattr__(self, "quality", min(1.0, max(0.0, q)) if np.isfinite(q) else 0.0)
+        r = float(self.residual_m)
+        object.__setattr__(self, "residual_m", r if np.isfinite(r) and r > 0.0 else 0.0)
         object.__setattr__(self, "shells", tuple(self.shells))
 
     def d_proj(self, hip: ArrayLike, r_hip_m: float) -> float:

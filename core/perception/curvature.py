@@ -199,7 +199,7 @@ def quadric_surface(
     noise_ratio = fit.scale / qc.noise_floor_m
     quality = fit.inliers * surround / (1.0 + 0.01 * noise_ratio * noise_ratio)
     return SurfaceFit(
-        True, hip + origin, normal, note, (), quality, "quadric", fit.model, n, surfaces
+        True, hip + origin, normal, note, (), quality, "quadric", fit.model, n, surfaces, fit.scale
     )
 
 

@@ -97,6 +97,9 @@ class SurfaceEstimate:
     #: estimate is then the nearer one, never a blend); ``note`` says which, on a valid estimate.
     surfaces: int = 1
     note: str = ""
+    #: The surface fit's residual scale (m): the measured noise of the points this estimate
+    #: stands on; the fusion weights cameras by it. 0 when unknown (not measured, or not sent).
+    residual_m: float = 0.0
 
     def __post_init__(self) -> None:
         centroid, ok_c = _frozen_vec3(self.centroid)
@@ -112,6 +115,8 @@ class SurfaceEstimate:
             object.__setattr__(self, "valid", False)
             object.__setattr__(self, "reason", self.reason or "non-finite centroid or normal")
         object.__setattr__(self, "t", float(self.t))
+        res = float(self.residual_m)
+        object.__setattr__(self, "residual_m", res if 0.0 < res < math.inf else 0.0)
         free = float(self.free_m)
         object.__setattr__(
             self, "free_m", free if 0.0 < free < math.inf and not self.valid else 0.0

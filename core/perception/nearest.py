@@ -59,4 +59,6 @@ def nearest_point(
     spread = float(np.sqrt(d2[idx].max()))
     # Flat neighbourhoods (rms small against their size) give trustworthy normals.
     quality = 1.0 / (1.0 + 10.0 * fit.rms_m / spread) if spread > 0.0 else 0.0
-    return SurfaceFit(True, centroid, normal, "", (), quality, "nearest", "plane", n)
+    return SurfaceFit(
+        True, centroid, normal, "", (), quality, "nearest", "plane", n, residual_m=fit.rms_m
+    )

@@ -189,6 +189,7 @@ class CameraPipeline:
             "stage_ms": _ms(timer),
             "surfaces": fit.surfaces,
             "note": fit.reason if fit.valid else "",
+            "residual_m": fit.residual_m,
         }
         if cfg.keep_points:
             extra["points"] = clusters.points
