@@ -6,10 +6,11 @@ Weighted quadratic regression over a sliding window (:mod:`.regression`), then P
 
 from .config import FusionConfig, gain_problem
 from .follower import NormalFollower, PidGains, PointFollower, iteration_matrix
-from .fusion import FusedSurface, SurfaceFusion
+from .fusion import CameraAgreement, FusedSurface, SurfaceFusion
 from .regression import PolyFit, fit_window
 
 __all__ = [
+    "CameraAgreement",
     "FusedSurface",
     "FusionConfig",
     "NormalFollower",

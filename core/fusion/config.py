@@ -171,6 +171,38 @@ class FusionConfig(StageConfig):
         doc="a gap between samples longer than this resets followers",
     )
 
+    # ----- cameras ----------------------------------------------------------------------------
+    # With two or more cameras in the window each camera is also fitted on its own: the cameras
+    # are weighted by the noise their estimates measured, and a camera whose surface lies farther
+    # from the HIP than the nearest camera's by more than their noise explains (a calibration
+    # error, a camera seeing another body) is left out: the nearer surface answers, never the
+    # farther, and FusedSurface says so (disagree, disagreement_m, quality_note).
+    weigh_cameras: bool = param(
+        True,
+        doc="fit each camera on its own: weight by measured residual, detect disagreement",
+    )
+    residual_floor_m: float = param(
+        0.0005,
+        lo=1e-6,
+        hi=0.05,
+        unit="m",
+        log_scale=True,
+        doc="a camera's fit residual counts as at least this (no camera is trusted without limit)",
+    )
+    disagreement_sigmas: float = param(
+        3.0,
+        lo=1.0,
+        hi=20.0,
+        doc="cameras disagree when their surfaces differ by more than this x their scatter",
+    )
+    disagreement_min_m: float = param(
+        0.0015,
+        lo=0.0,
+        hi=0.05,
+        unit="m",
+        doc="and by more than this (m): smaller differences are never called disagreement",
+    )
+
     def check(self) -> None:
         for prefix, (kp, ki, kd) in (
             ("", (self.kp, self.ki, self.kd)),

@@ -8,6 +8,14 @@ the newest estimate, then holding), and moves the PID followers one tick toward 
 Staleness: with no valid estimate for ``max_age_s`` the output is invalid and stale and the
 followers forget their state; an estimate arriving after such a gap also drops the pre-gap
 window, so the output restarts from the new data without a jump toward the old state.
+
+Several cameras (:class:`CameraAgreement`): with two or more cameras in the window each is also
+fitted on its own. Their distances from the HIP to their own surfaces are compared: a camera
+farther than the nearest by more than their scatter explains (a calibration error between the
+cameras, a camera that sees another body at a crease) is left out of the fit, so the nearer
+surface answers, never the farther (the safe side); the cameras that agree are fitted together,
+weighted by the inverse square of the residual their surface fits measured (a far, noisy camera
+weighs less). One camera in the window: the fit is exactly the single-camera one.
 """
 
 from __future__ import annotations
@@ -23,12 +31,42 @@ from ..perception.estimate import SurfaceEstimate
 from ..validation import as_finite_scalar
 from .config import FusionConfig
 from .follower import NormalFollower, PidGains, PointFollower
-from .regression import PolyFit, Vec3, fit_window
+from .regression import PolyFit, Vec3, age_weights, count_distinct_times, fit_window
 
 FloatArray = NDArray[np.float64]
 
 _ZERO: Vec3 = (0.0, 0.0, 0.0)
 _UP: Vec3 = (0.0, 0.0, 1.0)
+_NO_HIP = (math.nan, math.nan, math.nan)
+
+
+@dataclass(frozen=True, slots=True)
+class CameraAgreement:
+    """How the cameras in the window agree (empty with fewer than two cameras).
+
+    ``distances_m`` holds how much farther each camera puts the surface than the nearest camera
+    (m, along the newest normal: one motion fitted to all, one offset per camera);
+    ``scatter_m`` the scatter of its estimates about that fit (m, the noise that explains a
+    difference); ``residual_m`` the median
+    surface-fit residual its estimates reported (m, 0 if unknown) and ``weights`` the share each
+    has in the fit. ``disagreement_m`` is the largest minus the smallest distance, ``limit_m``
+    what their scatter explains between those two; ``disagree`` is True when a camera was left
+    out for it (``dropped``), and ``note`` says it in words.
+    """
+
+    cameras: tuple[str, ...] = ()
+    distances_m: tuple[float, ...] = ()
+    scatter_m: tuple[float, ...] = ()
+    residual_m: tuple[float, ...] = ()
+    weights: tuple[float, ...] = ()
+    disagreement_m: float = 0.0
+    limit_m: float = 0.0
+    disagree: bool = False
+    dropped: tuple[str, ...] = ()
+    note: str = ""
+
+
+_ONE_CAMERA = CameraAgreement()
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,6 +83,12 @@ class FusedSurface:
     ``cameras`` describe the fit, ``seq`` counts the results produced. ``free_m`` > 0 is a
     camera's fresh proof (no older than ``max_age_s``) that no surface lies within that distance
     of ``free_hip`` (a frame that saw its whole workspace empty); 0 without one.
+
+    The fused quality, with two or more cameras: ``disagreement_m`` is how far apart (m, along
+    the HIP's distance) the cameras' own surfaces lie, ``disagree`` is True when that is more
+    than their noise explains (the farther camera is then left out: the nearer surface answers)
+    and ``quality_note`` says it in words (and the cameras' weights); ``agreement`` holds the
+    figures per camera. 0, False, "" and empty with one camera.
     """
 
     t: float
@@ -63,6 +107,10 @@ class FusedSurface:
     seq: int
     free_m: float = 0.0
     free_hip: FloatArray | None = None
+    disagreement_m: float = 0.0
+    disagree: bool = False
+    quality_note: str = ""
+    agreement: CameraAgreement = _ONE_CAMERA
 
 
 class SurfaceFusion:
@@ -125,11 +173,13 @@ class SurfaceFusion:
 
     def reset(self) -> None:
         """Forget all estimates and the followers' state (counters are kept)."""
-        self._rows: list[tuple[float, ...]] = []  # (t, cx, cy, cz, nx, ny, nz) per estimate
+        # (t, cx, cy, cz, nx, ny, nz, residual_m, hx, hy, hz) per estimate; hip NaN if unknown.
+        self._rows: list[tuple[float, ...]] = []
         self._cam: list[str] = []
         self._newest = -math.inf
         self._dirty = False
         self._fit: PolyFit | None = None
+        self._agreement = _ONE_CAMERA
         self._fit_id = 0
         self._prev_eval: tuple[int, float, Vec3, Vec3] | None = None
         self._t_prev = -math.inf
@@ -167,7 +217,8 @@ class SurfaceFusion:
         elif t <= self._newest - cfg.window_s:
             self.n_late += 1
             return False
-        self._rows.append((t, *est.centroid.tolist(), *est.normal.tolist()))
+        hip = _NO_HIP if est.hip is None else est.hip.tolist()
+        self._rows.append((t, *est.centroid.tolist(), *est.normal.tolist(), est.residual_m, *hip))
         self._cam.append(est.camera)
         if t > self._newest:
             self._newest = t
@@ -195,19 +246,122 @@ class SurfaceFusion:
             self._rows = [self._rows[i] for i in idx]
             self._cam = [self._cam[i] for i in idx]
             rows = rows[keep]
-        self._fit = fit_window(
+        self._agreement = _ONE_CAMERA
+        fit = None
+        if cfg.weigh_cameras and len(set(self._cam)) > 1:
+            fit = self._fit_cameras(rows)
+        self._fit = self._fit_rows(rows, self._cam) if fit is None else fit
+        self._fit_id += 1
+
+    def _fit_rows(
+        self, rows: FloatArray, cams: list[str], weights: FloatArray | None = None
+    ) -> PolyFit:
+        cfg = self._cfg
+        return fit_window(
             rows[:, 0],
             rows[:, 1:4],
             rows[:, 4:7],
-            self._cam,
+            cams,
             window_s=cfg.window_s,
             half_life_s=cfg.weight_half_life_s,
             weighting=cfg.weighting,
             max_degree=cfg.max_degree,
             normal_max_degree=cfg.normal_max_degree,
             time_resolution_s=cfg.time_resolution_s,
+            sample_weights=weights,
         )
-        self._fit_id += 1
+
+    def _fit_cameras(self, rows: FloatArray) -> PolyFit | None:
+        """The cameras compared, weighted, and the fit of those that agree with the nearest
+        (see the module docstring); ``None`` when they cannot be told apart (too few samples)."""
+        cfg = self._cfg
+        times = rows[:, 0]
+        newest = len(times) - 1 - int(np.argmax(times[::-1]))
+        names = sorted(set(self._cam))
+        cam_index = {name: i for i, name in enumerate(names)}
+        which = np.array([cam_index[c] for c in self._cam])
+        # One motion for all, one offset per camera: the centroids' height along the newest
+        # normal, y = p(tau) + offset[camera]. Each camera's own fit would compare a camera that
+        # has one recent sample (a constant) with another's moving fit: motion, not disagreement.
+        ref = rows[newest, 4:7]
+        y = rows[:, 1:4] @ ref
+        age = times[newest] - times
+        w = age_weights(age, cfg.weight_half_life_s, cfg.window_s, cfg.weighting)
+        degree = min(cfg.max_degree, count_distinct_times(times, cfg.time_resolution_s) - 1)
+        tau = -age / cfg.window_s
+        k = len(names)
+        design = np.zeros((len(rows), degree + k))
+        design[np.arange(len(rows)), which] = 1.0  # offsets replace the constant term
+        for j in range(1, degree + 1):
+            design[:, k + j - 1] = tau**j
+        sw = np.sqrt(w)
+        coef, _, rank, sv = np.linalg.lstsq(design * sw[:, None], y * sw, rcond=None)
+        free = len(rows) - design.shape[1]
+        if rank < design.shape[1] or free < 1 or not sv[-1] > 1e-9 * sv[0]:
+            return None
+        resid = y - design @ coef
+        scatter = np.zeros(k)
+        for i in range(k):
+            mine = which == i
+            n_mine = int(mine.sum())
+            # The camera's share of the lost degrees of freedom (its offset, a share of p's).
+            dof = n_mine - 1 - degree * n_mine / len(rows)
+            if dof > 0.0:
+                wi, ri = w[mine], resid[mine]
+                scatter[i] = math.sqrt(float(wi @ (ri * ri)) / float(wi.sum()) * n_mine / dof)
+        # A camera whose surface is higher along the normal (toward the HIP) is nearer.
+        dist = -coef[:k]
+        dist = dist - dist.min()
+        near = int(np.argmin(dist))
+        limits = np.maximum(
+            cfg.disagreement_min_m, cfg.disagreement_sigmas * np.hypot(scatter, scatter[near])
+        )
+        agree = dist <= limits
+        residual = []
+        for i in range(k):
+            known = rows[which == i, 7]
+            known = known[known > 0.0]
+            residual.append(float(np.median(known)) if known.size else 0.0)
+        res = np.array(residual)
+        floor = cfg.residual_floor_m
+        if (res > 0.0).all():
+            w_cam = (floor / np.maximum(res, floor)) ** 2
+        else:  # a camera that does not report its residual: no basis to weigh them apart
+            w_cam = np.ones(k)
+        keep = np.flatnonzero(agree)
+        w_keep = w_cam[keep] / w_cam[keep].sum()
+        far = int(np.argmax(dist))
+        dropped = tuple(names[i] for i in np.flatnonzero(~agree))
+        spread = float(dist[far])
+        if dropped:
+            note = (
+                f"cameras disagree by {spread * 1e3:.1f} mm (noise explains "
+                f"{limits[far] * 1e3:.1f} mm): the nearer surface ({names[near]}) answers, "
+                f"{', '.join(dropped)} left out"
+            )
+        else:
+            note = "weights " + ", ".join(
+                f"{names[i]} {wk:.2f}" for i, wk in zip(keep.tolist(), w_keep.tolist(), strict=True)
+            )
+        weights = [0.0] * k
+        for i, wk in zip(keep.tolist(), w_keep.tolist(), strict=True):
+            weights[i] = wk
+        self._agreement = CameraAgreement(
+            tuple(names),
+            tuple(dist.tolist()),
+            tuple(scatter.tolist()),
+            tuple(residual),
+            tuple(weights),
+            spread,
+            float(limits[far]),
+            bool(dropped),
+            dropped,
+            note,
+        )
+        if keep.size == k and (w_cam == w_cam[0]).all():
+            return None  # all agree, equal trust: the plain fit of every row
+        idx = np.flatnonzero(agree[which])
+        return self._fit_rows(rows[idx], [self._cam[i] for i in idx.tolist()], w_cam[which[idx]])
 
     # ----- output ----------------------------------------------------------------------------
     def sample(self, t: float) -> FusedSurface:
@@ -345,6 +499,7 @@ class SurfaceFusion:
             arrays = (rows[0], rows[1], rows[2], rows[3], rows[4])
             self._emitted = (vectors, arrays)
         centroid, normal, velocity, target_centroid, target_normal = arrays
+        agreement = _ONE_CAMERA if fit is None else self._agreement
         free = self._free
         if free is not None and not t - free[0] <= self._cfg.max_age_s:
             free = None
@@ -365,6 +520,10 @@ class SurfaceFusion:
             self._seq,
             0.0 if free is None else free[2],
             None if free is None else free[1],
+            agreement.disagreement_m,
+            agreement.disagree,
+            agreement.note,
+            agreement,
         )
         self._last = out
         return out

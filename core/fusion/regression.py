@@ -176,18 +176,24 @@ def fit_window(
     max_degree: int = 2,
     normal_max_degree: int = 2,
     time_resolution_s: float = 1e-3,
+    sample_weights: FloatArray | None = None,
 ) -> PolyFit:
     """Fit the samples ``times (N,)`` s, ``centroids (N, 3)`` m, unit ``normals (N, 3)``.
 
     The caller has already kept only the window (ages ``< window_s`` from the newest); ``N >= 1``.
     The newest sample (the last one given among equal newest times) supplies the reference normal.
+    ``sample_weights (N,)`` (positive) multiply the age weights (a camera's trust); ``None``
+    weighs by age alone.
     """
     n = int(times.shape[0])
     newest = n - 1 - int(np.argmax(times[::-1]))  # last of the equal newest times
     t_ref = float(times[newest])
     ref = tuple(normals[newest].tolist())
     age = t_ref - times
-    sw = np.sqrt(age_weights(age, half_life_s, window_s, weighting))  # sqrt(W) A: W-norm LS
+    w = age_weights(age, half_life_s, window_s, weighting)
+    if sample_weights is not None:
+        w = w * sample_weights
+    sw = np.sqrt(w)  # sqrt(W) A: W-norm LS
     n_times = count_distinct_times(times, time_resolution_s)
     # Fit offsets from the newest centroid: large world coordinates lose no digits in the solve.
     origin = centroids[newest]
