@@ -69,6 +69,37 @@ def paper_cameras(
     return cams[0], cams[1]
 
 
+def miscalibrated_pose(
+    pose_world_camera: ArrayLike,
+    *,
+    shift_m: float = 0.003,
+    angle_deg: float = 1.0,
+    pivot: ArrayLike | None = None,
+) -> FloatArray:
+    """The pose a pipeline *believes* a camera has, under an extrinsic calibration error.
+
+    The true pose is rotated by ``angle_deg`` about the camera's own ``x`` axis (a pitch error)
+    through ``pivot`` (world, m; the camera's optical centre when None) and shifted by
+    ``shift_m`` along the camera's ``(x + y + z) / sqrt(3)`` (a fixed direction, so runs are
+    deterministic). The camera still renders from its true pose; its frames, stamped with this
+    pose, put every point where the camera is believed to be (``shift_m`` + ``angle x distance``
+    from the pivot off). A rig calibrated on a board in the workspace has its pivot there.
+    """
+    true = np.asarray(pose_world_camera, dtype=float)
+    rot = true[:3, :3]
+    x_axis = rot[:, 0]
+    a = math.radians(angle_deg)
+    k = np.array(
+        [[0.0, -x_axis[2], x_axis[1]], [x_axis[2], 0.0, -x_axis[0]], [-x_axis[1], x_axis[0], 0.0]]
+    )
+    turn = np.eye(3) + math.sin(a) * k + (1.0 - math.cos(a)) * (k @ k)
+    centre = true[:3, 3] if pivot is None else as_vector3(pivot, "pivot")
+    believed = np.eye(4)
+    believed[:3, :3] = turn @ rot
+    believed[:3, 3] = centre + turn @ (true[:3, 3] - centre) + shift_m * rot @ np.full(3, 3**-0.5)
+    return believed
+
+
 def end_effector(
     hip: ArrayLike,
     direction: ArrayLike,
