@@ -5,7 +5,9 @@ The window hands every snapshot it shows (and the session's newest control snaps
 
 - ``session``: ``states`` as ``[[t_s, state], ...]`` (t from the window's start), ``faults``,
   ``space`` changes (known / holding / stopped, with reasons), ``misses_per_10k``;
-- ``cameras.<name>.rate_hz_median``; ``sim.real_time_factor_median``;
+- ``cameras.<name>.rate_hz_median``; ``sim.real_time_factor_median``: simulated time per wall
+  time of the simulation's clock (``sim.clock``): with a session the control process's (the
+  simulated drives and arm), else the cameras' (which drop frames rather than slow down);
 - ``fused_error_mm.median`` / ``.p90``: the fused surface's centroid against the simulator's
   true closest point, over the snapshots with a valid fused surface;
 - ``view.fps_median``; ``view.frame_to_screen_ms_median`` (camera exposure to the paint);
@@ -37,6 +39,7 @@ class AppReport:
         self.space: list[list[Any]] = []
         self.rates: dict[str, list[float]] = {}
         self.rtf: list[float] = []
+        self.plant_rtf: list[float] = []
         self.fused_error_mm: list[float] = []
         self.fps: list[float] = []
         self.to_screen_ms: list[float] = []
@@ -90,6 +93,9 @@ class AppReport:
         control = session.latest
         if control is not None:
             self.misses_per_10k = 1e4 * control.misses / max(int(control.tick), 1)
+            factor = getattr(control, "sim_time_factor", math.nan)
+            if math.isfinite(factor):
+                self.plant_rtf.append(factor)
 
     def to_json(self) -> dict[str, Any]:
         t = np.array(self.truth_t, dtype=np.float64)
@@ -105,7 +111,11 @@ class AppReport:
             "cameras": {
                 name: {"rate_hz_median": _median(v)} for name, v in sorted(self.rates.items())
             },
-            "sim": {"real_time_factor_median": _median(self.rtf)},
+            "sim": {
+                "real_time_factor_median": _median(self.plant_rtf or self.rtf),
+                "clock": "control process" if self.plant_rtf else "cameras",
+                "cameras_real_time_factor_median": _median(self.rtf),
+            },
             "fused_error_mm": summary(np.array(self.fused_error_mm)),
             "view": {
                 "fps_median": _median(self.fps),

@@ -65,14 +65,16 @@ class StatusPanel:
             self.labels[key] = label
         self.labels["state"].setMinimumWidth(84)
         self._last = 0.0
+        self._plant_factor = math.nan  # the session's simulation clock (NaN: no session)
         self.set_state(SourceState.STARTING, "")
         self._tips()
 
     def _tips(self) -> None:
         tips = {
             "cameras": "frames per second each camera delivered (wall clock, last second)",
-            "speed": "simulation time per wall time (below 1: the machine cannot simulate the "
-            "cameras in real time; every frame is still processed at its simulated time)",
+            "speed": "simulation time per wall time: with a session the control process's "
+            "simulated drives and arm (below 1: the machine cannot keep up and the simulation "
+            "runs slower), else the cameras' clock (a frame not rendered in time is dropped)",
             "perception": "perception time per frame, stages A-E: median / worst of the last "
             "second",
             "age": "age of the newest valid camera estimate at the newest frame (source clock): "
@@ -95,7 +97,9 @@ class StatusPanel:
             label.setStyleSheet(style)
         if snap is None:
             self.labels["control"].setText(f"control {NO_VALUE}")
+            self._plant_factor = math.nan
             return
+        self._plant_factor = getattr(snap, "sim_time_factor", math.nan)
         rate = getattr(snap, "control_rate_hz", math.nan)
         misses = getattr(snap, "misses", 0)
         rate_text = f"{rate:.0f} Hz" if math.isfinite(rate) else NO_VALUE
@@ -132,7 +136,9 @@ class StatusPanel:
             for cam in snap.cameras
         )
         self.labels["cameras"].setText(rates or "no camera")
-        rtf = snap.real_time_factor
+        rtf = self._plant_factor
+        if not math.isfinite(rtf):
+            rtf = snap.real_time_factor
         self.labels["speed"].setText(
             f"sim {rtf:.2f}{TIMES} real time" if math.isfinite(rtf) else f"sim {NO_VALUE}"
         )

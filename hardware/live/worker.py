@@ -1,13 +1,23 @@
-"""The live worker: sim cameras -> perception -> fusion, one packet per camera frame.
+"""The live worker: the app's cameras through the perception worker, one packet per camera frame.
 
 The worker (:func:`run_worker`, run by :class:`~.source.LiveSource` in its own process or on a
-thread) owns every object of the data path: the simulated world, one
-:class:`~hapticloud.core.perception.CameraPipeline` per camera and the
-:class:`~hapticloud.core.fusion.SurfaceFusion`. It renders each camera at 30 Hz (interleaved),
-runs perception, adds the estimate to the fusion, samples the fusion at the control rate
-(800 Hz) between frames, and sends one small :class:`Packet` per camera frame down a pipe. With a
-session (:class:`SessionAttach`) it takes the HIP from the control process's shared state and
-sends every estimate to the loop's fusion too.
+thread) runs the one perception worker (:class:`~hapticloud.hardware.perception.PerceptionWorker`)
+over the scene's simulated D435s: each camera a
+:class:`~hapticloud.hardware.perception.RenderedChannel` (its workspace ROI rendered, then its
+:class:`~hapticloud.core.perception.CameraPipeline`) at 30 Hz, interleaved; the robot they see
+(the HIP for the crop, its ball and links as occluders) from the session's state block, or the
+scene's scripted HIP path while there is no session (:class:`LiveRobot`). Each frame goes to
+the control process's fusion (a :class:`~hapticloud.hardware.perception.ControlSink`, with a
+session) and to the display (:class:`Display`: the display's own fusion sampled at the control
+rate between frames, a low-resolution context cloud of the scene, the truth, and one small
+:class:`FramePacket` down a pipe).
+
+Time: one clock, the control loop's (:func:`time.monotonic`). A frame's scene time is the time
+the robot was where the camera saw it (``(pose.t - start) * speed``) and the estimate the loop
+fuses is stamped with that same ``pose.t``: the loop judges its age on its own clock. A frame
+the machine cannot render in time is dropped (the camera's rate shows it), as a camera's driver
+drops it; the cameras' clock never slows down. The simulated plant's own pace (the control
+process's simulation clock) is the session's ``sim_time_factor``.
 """
 
 from __future__ import annotations
@@ -17,6 +27,7 @@ import math
 import queue
 import time
 import traceback
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,13 +35,23 @@ import numpy as np
 from hapticloud.core.fusion import FusedSurface, SurfaceFusion
 from hapticloud.core.geometry.primitives import Primitive
 from hapticloud.core.haptics import d_proj
-from hapticloud.core.loop import admit
 from hapticloud.core.perception import STAGES, CameraPipeline, SurfaceEstimate
 from hapticloud.core.scene.schema import CameraSpec
 from hapticloud.core.sim import GroundTruth
 from hapticloud.core.studies.demo import CAMERA_RATE_HZ
 from numpy.typing import NDArray
 
+from ..perception import (
+    ChannelSpec,
+    ControlSink,
+    DisplaySink,
+    Perceived,
+    PerceptionWorker,
+    RenderedChannel,
+    RobotPose,
+    StateBlockFeed,
+)
+from ..sources import open_source
 from .contract import CONTROL_RATE_HZ, TICK_COLUMNS, LiveConfig, SourceState
 from .scenes import SimSettings, build_scene, robot_at, scene_spec, session_robot
 
@@ -43,9 +64,6 @@ ADMIT_MIN_QUALITY = CameraSpec().min_quality
 #: rendered by a twin camera binned by this factor: perception's camera renders only the pixels
 #: of the workspace sphere (what stage A reads), a 64th of the rays goes to the picture around it.
 CONTEXT_STRIDE = 8
-#: Behind real time by more than this (s), the sim clock stops catching up and slows down
-#: instead (shown as the real-time factor): no burst of frames after a stall.
-MAX_LAG_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -54,57 +72,13 @@ class SessionAttach:
 
     ``estimates`` is :attr:`ControlProcess.estimate_connection` (the write end of its estimates
     pipe); ``state_block`` the name of its :class:`RobotStateBlock` (the robot's HIP and q, every
-    tick). With a session, the worker takes the HIP from the block instead of the scripted path
-    and sends every estimate to the loop, its time mapped onto ``time.monotonic()``.
+    tick) and ``n_joints`` its layout. With a session, the cameras see the robot of the block
+    instead of the scripted path, and every estimate goes to the loop.
     """
 
     estimates: Any
     state_block: str
-
-
-class _SessionFeed:
-    """The worker's end of a session: HIP in (shared memory), estimates out (pipe, never
-    blocking: an estimate the pipe cannot take now is dropped and counted)."""
-
-    def __init__(self, attach: SessionAttach) -> None:
-        from hapticloud.hardware.control.shared_state import RobotStateBlock
-
-        self._conn = attach.estimates
-        self._block = RobotStateBlock.attach(attach.state_block)
-        self.dropped = 0
-        self.alive = True
-
-    def state(self) -> tuple[FloatArray, FloatArray] | None:
-        """The robot's HIP (m) and joint positions (rad) now, or ``None``."""
-        if not self.alive:
-            return None
-        state = self._block.read()
-        if state is None or not (np.isfinite(state.hip_m).all() and np.isfinite(state.q_rad).all()):
-            return None
-        return np.asarray(state.hip_m, dtype=np.float64), np.asarray(state.q_rad, np.float64)
-
-    def hip(self) -> FloatArray | None:
-        live = self.state()
-        return None if live is None else live[0]
-
-    def send(self, est: SurfaceEstimate, captured: float) -> None:
-        if not self.alive:
-            return
-        import select
-
-        from hapticloud.hardware.control.messages import send_estimate
-
-        try:
-            if not select.select((), (self._conn.fileno(),), (), 0.0)[1]:
-                self.dropped += 1
-                return
-            # The loop's clock is time.monotonic(); the estimate's t is simulation time.
-            send_estimate(self._conn, dataclasses.replace(est, t=captured))
-        except (OSError, ValueError):
-            self.alive = False  # the control process is gone: perception goes on alone
-
-    def close(self) -> None:
-        self._block.close()
+    n_joints: int = 6
 
 
 @dataclass(frozen=True)
@@ -126,7 +100,11 @@ def _cut(depth: Any, hip: FloatArray, robot: Any, est: SurfaceEstimate, crop: An
 @dataclass(frozen=True)
 class FramePacket:
     """One camera frame, worker -> receiver. Estimates travel as field dicts (their stage_ms
-    mapping proxy does not pickle) and are rebuilt, frozen, on the receiving side."""
+    mapping proxy does not pickle) and are rebuilt, frozen, on the receiving side.
+
+    ``t`` is the frame's scene time (the estimate's ``t`` too), ``captured`` the
+    :func:`time.monotonic` time the robot was where the camera saw it; ``render_ms`` what
+    rendering took (the frame's perception time less the pipeline's)."""
 
     camera: int
     t: float
@@ -183,18 +161,14 @@ def run_worker(
 
     ``conn`` is the sending end of a pipe, ``requests`` a queue of ``(version, LiveConfig)``,
     :class:`RecordRequest` and :class:`SessionAttach`, ``stop`` an event. Runs in a worker
-    process (or thread); everything it builds is its own. With ``session`` the HIP comes from
-    the control process and every estimate goes to it.
+    process (or thread); everything it builds is its own. With ``session`` the cameras see the
+    control process's robot and every estimate goes to it.
     """
-    feed = None
-    if session is not None:
-        try:
-            feed = _SessionFeed(session)
-        except (OSError, ValueError):
-            feed = None  # the session is already gone: perception alone
     worker: _Worker | None = None
     try:
-        worker = _Worker(settings, config, conn, requests, stop, feed)
+        worker = _Worker(settings, config, conn, requests, stop)
+        if session is not None:
+            worker.attach(session)
         worker.run()
     except (BrokenPipeError, EOFError, OSError):
         return  # the receiver is gone: nobody to tell
@@ -206,17 +180,55 @@ def run_worker(
             pass
         return
     finally:
-        feed = worker.feed if worker is not None else feed
-        if feed is not None:
-            feed.close()
+        if worker is not None:
+            worker.perception.close()
     try:
         conn.send(WorkerEnded(SourceState.STOPPED, "stopped"))
     except OSError:
         pass
 
 
+class LiveRobot:
+    """The robot the app's cameras see (a :class:`~hapticloud.hardware.perception.RobotFeed`):
+    the session's (its state block: HIP and joints, stamped with the tick that wrote them) while
+    it has a state, else the scene's scripted HIP path at the scene time of now (no joints).
+
+    ``scene_time`` maps a clock time to scene time (the perception worker's, once built).
+    """
+
+    def __init__(
+        self,
+        hip_path: Callable[[float], Any],
+        scene_time: Callable[[float], float],
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.hip_path = hip_path
+        self.scene_time = scene_time
+        self._clock = clock
+        self.session: StateBlockFeed | None = None
+
+    def attach(self, block_name: str, n_joints: int) -> None:
+        """Follow the session's robot from now on (its state block ``block_name``)."""
+        self.close()
+        self.session = StateBlockFeed(block_name, n_joints)
+
+    def read(self) -> RobotPose:
+        if self.session is not None:
+            pose = self.session.read()
+            if pose is not None:
+                return pose
+        now = self._clock()
+        hip = np.asarray(self.hip_path(self.scene_time(now)), dtype=np.float64)
+        return RobotPose(now, hip, None)
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+
 class _Worker:
-    """The data path's objects and the loop's state, owned by the worker alone."""
+    """The perception worker over the app's cameras, the display sink and the requests."""
 
     def __init__(
         self,
@@ -225,52 +237,56 @@ class _Worker:
         conn: Any,
         requests: Any,
         stop: Any,
-        feed: _SessionFeed | None,
     ) -> None:
         from hapticloud.core.threads import settle_numerics
 
         settle_numerics(1)
         scene = build_scene(settings)
         spec = scene_spec(settings.scene)
-        self.settings, self.config, self.feed = settings, config, feed
-        self.conn, self.requests, self.stop = conn, requests, stop
-        self.world, self.cameras = scene.world, scene.cameras
-        self.hip_path, self.world_at = spec.hip_path, spec.world_at
-        self.r_hip = settings.r_hip_m
-        self.pipes = [CameraPipeline(config.perception, camera=c.name) for c in self.cameras]
-        self.twins = [_context_camera(c) for c in self.cameras]
-        self.fusion = SurfaceFusion(config.fusion)
-        self.tick_dt = 1.0 / CONTROL_RATE_HZ
-        self.version, self.sent_version = 0, -1
-        self.recording: Any = None  # a RecordConfig while the app records
-        self.next_tick = 0.0
-        self.wall0 = time.monotonic()
+        self.settings, self.requests, self.stop = settings, requests, stop
+        cameras = scene.cameras
+        world = spec.world_at if spec.world_at is not None else scene.world
+        channels = [_channel(cam, j, len(cameras), world, config) for j, cam in enumerate(cameras)]
+        self.display = Display(settings, config, conn, scene.world, spec, channels)
+        self.robot = LiveRobot(spec.hip_path, lambda t: 0.0)
+        self.perception = PerceptionWorker(
+            channels,
+            self.robot,
+            [DisplaySink(self.display.put)],
+            occluders=self._occluders,
+            time_scale=settings.speed,
+        )
+        self.robot.scene_time = self.perception.scene_time
+        self.control: ControlSink | None = None
+
+    def _occluders(self, pose: RobotPose) -> tuple[Primitive, ...]:
+        """The session's robot (ball + links), or the scripted one (ball + handle)."""
+        if pose.q is None:
+            return robot_at(self.settings, pose.hip)
+        return session_robot(pose.hip, pose.q)
+
+    def attach(self, session: SessionAttach) -> None:
+        """Feed the control process of ``session`` (its estimates first, then the display)."""
+        if self.control is not None:
+            self.perception.sinks.remove(self.control)
+            self.control = None
+        try:
+            self.robot.attach(session.state_block, session.n_joints)
+        except (OSError, ValueError):
+            return  # the session is already gone: perception alone
+        self.control = ControlSink(session.estimates, drop_when_full=True)
+        self.perception.sinks.insert(0, self.control)
 
     def run(self) -> None:
-        period = 1.0 / CAMERA_RATE_HZ
-        k = 0
-        while not self.stop.is_set():
-            for j, cam in enumerate(self.cameras):
-                # Interleaved like the demo: camera j fires j/n of a period after camera 0.
-                t = k * period + j * period / len(self.cameras)
-                if not self._wait_until(t):
-                    return
-                self._apply_requests(t)
-                self._frame(j, cam, t)
-            k += 1
+        perception, stop = self.perception, self.stop
+        perception.start()
+        while not stop.is_set():
+            self._apply_requests()
+            wake = perception.step()
+            if stop.wait(max(0.0, wake - time.monotonic())):
+                return
 
-    def _wait_until(self, t: float) -> bool:
-        """Pace simulation time ``t`` to the wall clock; False once stopped."""
-        speed = self.settings.speed
-        delay = self.wall0 + t / speed - time.monotonic()
-        if delay > 0:
-            if self.stop.wait(delay):
-                return False
-        elif delay < -MAX_LAG_S:
-            self.wall0 = time.monotonic() - t / speed
-        return not self.stop.is_set()
-
-    def _apply_requests(self, t: float) -> None:
+    def _apply_requests(self) -> None:
         newest = None
         while True:  # drain: the newest request wins
             try:
@@ -278,89 +294,108 @@ class _Worker:
             except queue.Empty:
                 break
             if isinstance(item, RecordRequest):
-                self.recording = item.record
+                self.display.recording = item.record
             elif isinstance(item, SessionAttach):  # a session that came up after the start
-                if self.feed is not None:
-                    self.feed.close()
-                try:
-                    self.feed = _SessionFeed(item)
-                except (OSError, ValueError):
-                    self.feed = None
+                self.attach(item)
             else:
                 newest = item
-        if newest is None:
-            return
-        self.version, requested = newest
+        if newest is not None:
+            now = self.perception.scene_time(time.monotonic())
+            self.display.configure(*newest, now)
+
+
+def _channel(cam: Any, j: int, n: int, world: Any, config: LiveConfig) -> RenderedChannel:
+    """Camera ``j`` of ``n`` as the worker's channel: 30 Hz, interleaved like the demo (camera
+    j fires j/n of a period after camera 0), gated like the control process gates it."""
+    spec = ChannelSpec(
+        cam.name,
+        rate_hz=CAMERA_RATE_HZ,
+        phase_s=j / (n * CAMERA_RATE_HZ),
+        min_quality=ADMIT_MIN_QUALITY,
+    )
+    source = open_source(
+        "simulated",
+        camera=cam,
+        world=world,
+        rate_hz=spec.rate_hz,
+        phase_s=spec.phase_s,
+        realtime=False,
+    )
+    return RenderedChannel(spec, source, CameraPipeline(config.perception, camera=cam.name))
+
+
+class Display:
+    """What the window shows of each perceived frame (a
+    :class:`~hapticloud.hardware.perception.DisplaySink`'s callback, in the worker's thread):
+    the display's own fusion sampled at the control rate up to the frame, the frame's context
+    cloud, the truth, its errors, and the :class:`FramePacket` sent down ``conn``."""
+
+    def __init__(
+        self,
+        settings: SimSettings,
+        config: LiveConfig,
+        conn: Any,
+        world: Any,
+        spec: Any,
+        channels: Sequence[RenderedChannel],
+    ) -> None:
+        self.conn, self.config = conn, config
+        self.world, self.world_at, self.hip_path = world, spec.world_at, spec.hip_path
+        self.r_hip = settings.r_hip_m
+        self.channels = list(channels)
+        self.index = {c.name: j for j, c in enumerate(self.channels)}
+        self.twins = [_context_camera(c.source.camera) for c in self.channels]
+        self.fusion = SurfaceFusion(config.fusion)
+        self.tick_dt = 1.0 / CONTROL_RATE_HZ
+        self.version, self.sent_version = 0, -1
+        self.recording: Any = None  # a RecordConfig while the app records
+        self.next_tick = 0.0
+
+    def configure(self, version: int, requested: LiveConfig, t: float) -> None:
+        """Use ``requested`` from the next frame on (scene time ``t`` now)."""
+        self.version = version
         if requested.perception != self.config.perception:
-            for pipe in self.pipes:
-                pipe.configure(requested.perception)
+            for channel in self.channels:
+                channel.pipeline.configure(requested.perception)
         if requested.fusion != self.config.fusion:
             self.fusion = SurfaceFusion(requested.fusion)
             self.next_tick = t
         self.config = requested
 
-    def _robot_now(self, t: float) -> tuple[FloatArray, tuple[Primitive, ...], bool]:
-        """The HIP, the robot's shapes and whether they are the session's (else scripted)."""
-        live = self.feed.state() if self.feed is not None else None
-        if live is None:
-            hip = np.asarray(self.hip_path(t), dtype=np.float64)
-            return hip, robot_at(self.settings, hip), False
-        return live[0], session_robot(*live), True
-
-    def _fuse(
-        self, est: SurfaceEstimate, captured: float, t: float, hip: FloatArray, live: bool
-    ) -> tuple[FusedSurface, float, FloatArray]:
-        """Sample the fusion at the control rate up to this frame, then add the frame's estimate;
-        the fused surface at ``t``, its projected distance and the ticks' history rows."""
-        rows: list[tuple[float, float, float, float]] = []
-        # Ticks before this frame see only the estimates before it.
-        while self.next_tick < t:
-            tick_hip = hip if live else self.hip_path(self.next_tick)
-            _tick(self.fusion, self.next_tick, tick_hip, self.r_hip, rows)
-            self.next_tick += self.tick_dt
-        if self.feed is not None:
-            self.feed.send(est, captured)
-        # What the control process fuses: the same gate (quality, no estimator fallbacks).
-        if admit(est, ADMIT_MIN_QUALITY):
-            self.fusion.add(est)
-        fused, fused_dp = _tick(self.fusion, t, hip, self.r_hip, rows)
-        self.next_tick = max(self.next_tick, t + self.tick_dt)
-        tick_rows = np.array(rows, dtype=np.float64).reshape(-1, len(TICK_COLUMNS))
-        return fused, fused_dp, tick_rows
-
-    def _frame(self, j: int, cam: Any, t: float) -> None:
-        captured = time.monotonic()
-        hip, robot, live = self._robot_now(t)
-        pipe = self.pipes[j]
-        t0 = time.perf_counter()
+    def put(self, item: Perceived) -> None:
+        j, t, hip = self.index[item.camera], item.t_scene, item.hip
+        robot = tuple(item.occluders)
+        # The display runs on scene time: its fusion, history and status read the estimate so.
+        est = dataclasses.replace(item.estimate, t=t)
         if self.world_at is not None:
             self.world = self.world_at(t)
         world = self.world
-        roi = cam.workspace_roi(hip, pipe.config.crop)
-        depth = cam.render(world, t, occluders=robot, roi=roi)
-        render_ms = 1e3 * (time.perf_counter() - t0)
-        est = pipe.process_depth(depth, hip, exclude=robot)
         cut = None
         if self.recording is not None:
-            cut = _cut(depth, hip, robot, est, pipe.config.crop, self.recording)
+            crop = self.channels[j].crop
+            cut = _cut(item.frame, hip, robot, est, crop, self.recording)
         context = self.twins[j].render(world, t, occluders=robot).points_world()
-        context = context.astype(np.float32)
         truth = world.ground_truth(hip, t)
-        fused, fused_dp, tick_rows = self._fuse(est, captured, t, hip, live)
+        fused, fused_dp, tick_rows = self._fuse(est, item.admitted, t, hip, item.q is not None)
         dp, err, nerr, row = _frame_row(j, t, est, fused, truth, hip, self.r_hip)
-        # Read back what the pipelines and the fusion hold: the window shows that, not the
-        # request (so a test of "the slider changed the pipeline" checks the pipeline).
-        held = LiveConfig(perception=self.pipes[0].config, fusion=self.fusion.config)
+        held = None
+        if self.version != self.sent_version:
+            # Read back what the pipelines and the fusion hold: the window shows that, not the
+            # request (so a test of "the slider changed the pipeline" checks the pipeline).
+            # Only on a change: building a LiveConfig validates every table (~2 ms).
+            held = LiveConfig(
+                perception=self.channels[0].pipeline.config, fusion=self.fusion.config
+            )
         self.conn.send(
             FramePacket(
                 camera=j,
                 t=t,
-                captured=captured,
+                captured=item.captured,
                 hip=hip,
                 robot=robot,
                 estimate=_estimate_fields(est),
-                context=context,
-                render_ms=render_ms,
+                context=context.astype(np.float32),
+                render_ms=item.perception_ms - float(est.stage_ms.get("total", 0.0)),
                 d_proj_m=dp,
                 error_mm=err,
                 normal_error_deg=nerr,
@@ -370,12 +405,31 @@ class _Worker:
                 body_offsets=tuple(b.displacement(t) for b in world.bodies),
                 frame_row=row,
                 tick_rows=tick_rows,
-                config=held if self.version != self.sent_version else None,
+                config=held,
                 config_version=self.version,
                 record=cut,
             )
         )
         self.sent_version = self.version
+
+    def _fuse(
+        self, est: SurfaceEstimate, admitted: bool, t: float, hip: FloatArray, live: bool
+    ) -> tuple[FusedSurface, float, FloatArray]:
+        """Sample the fusion at the control rate up to this frame, then add the frame's estimate
+        (if the loop's gate admits it); the fused surface at ``t``, its projected distance and
+        the ticks' history rows."""
+        rows: list[tuple[float, float, float, float]] = []
+        # Ticks before this frame see only the estimates before it.
+        while self.next_tick < t:
+            tick_hip = hip if live else self.hip_path(self.next_tick)
+            _tick(self.fusion, self.next_tick, tick_hip, self.r_hip, rows)
+            self.next_tick += self.tick_dt
+        if admitted:
+            self.fusion.add(est)
+        fused, fused_dp = _tick(self.fusion, t, hip, self.r_hip, rows)
+        self.next_tick = max(self.next_tick, t + self.tick_dt)
+        tick_rows = np.array(rows, dtype=np.float64).reshape(-1, len(TICK_COLUMNS))
+        return fused, fused_dp, tick_rows
 
 
 def _frame_row(
