@@ -309,14 +309,21 @@ class SurfaceFusion:
             if dof > 0.0:
                 wi, ri = w[mine], resid[mine]
                 scatter[i] = math.sqrt(float(wi @ (ri * ri)) / float(wi.sum()) * n_mine / dof)
+        # Only cameras with a recent estimate are compared: a camera that stopped seeing the
+        # surface has old rows that weigh little, and it must not answer alone (stale fit).
+        newest_of = np.full(k, -math.inf)
+        np.maximum.at(newest_of, which, times)
+        fresh = times[newest] - newest_of <= cfg.max_extrapolation_s
+        if fresh.sum() < 2:
+            return None
         # A camera whose surface is higher along the normal (toward the HIP) is nearer.
         dist = -coef[:k]
-        dist = dist - dist.min()
-        near = int(np.argmin(dist))
+        dist = dist - dist[fresh].min()
+        near = int(np.flatnonzero(fresh)[np.argmin(dist[fresh])])
         limits = np.maximum(
             cfg.disagreement_min_m, cfg.disagreement_sigmas * np.hypot(scatter, scatter[near])
         )
-        agree = dist <= limits
+        agree = (dist <= limits) | ~fresh
         residual = []
         for i in range(k):
             known = rows[which == i, 7]
@@ -330,7 +337,7 @@ class SurfaceFusion:
             w_cam = np.ones(k)
         keep = np.flatnonzero(agree)
         w_keep = w_cam[keep] / w_cam[keep].sum()
-        far = int(np.argmax(dist))
+        far = int(np.flatnonzero(fresh)[np.argmax(dist[fresh])])
         dropped = tuple(names[i] for i in np.flatnonzero(~agree))
         spread = float(dist[far])
         if dropped:
