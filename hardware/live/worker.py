@@ -255,6 +255,7 @@ class _Worker:
             [DisplaySink(self.display.put)],
             occluders=self._occluders,
             time_scale=settings.speed,
+            catch_up=True,  # a late render is not a late exposure: render it now
         )
         self.robot.scene_time = self.perception.scene_time
         self.control: ControlSink | None = None

@@ -83,9 +83,14 @@ class FrameSchedule:
     """
 
     def __init__(
-        self, specs: Sequence[ChannelSpec], origin: float, time_scale: float = 1.0
+        self,
+        specs: Sequence[ChannelSpec],
+        origin: float,
+        time_scale: float = 1.0,
+        catch_up: bool = False,
     ) -> None:
         self._scale = float(time_scale)
+        self._catch_up = bool(catch_up)
         self.next_t = [origin + spec.phase_s / self._scale for spec in specs]
         self._step = [1.0 / (spec.rate_hz * self._scale) for spec in specs]
         self.skipped = [0] * len(specs)
@@ -100,11 +105,14 @@ class FrameSchedule:
 
     def advance(self, i: int, now: float) -> None:
         """Camera ``i`` took its frame; its next one is the first on its grid after ``now``
-        (those in between are skipped and counted)."""
+        (those in between are skipped and counted), or with ``catch_up`` the newest of those
+        in between, due at once (the others skipped)."""
         step = self._step[i]
         nxt = self.next_t[i] + step
         if nxt <= now:
             missed = math.floor((now - nxt) / step) + 1
+            if self._catch_up:
+                missed -= 1
             self.skipped[i] += missed
             nxt += missed * step
         self.next_t[i] = nxt
@@ -130,6 +138,11 @@ class PerceptionWorker:
         Monotonic clock (s): the control loop's (``time.monotonic``) unless a test injects one.
     time_scale
         Scene seconds per clock second (a slowed-down display: < 1).
+    catch_up
+        A camera whose frame took longer than its period takes its next frame at once (the
+        newest it missed) instead of waiting for the next on its grid: a simulated camera whose
+        rendering, not its exposure, was late (the live app on a loaded machine). Off: frames
+        on the grid are dropped, as a camera's driver drops them.
     """
 
     def __init__(
@@ -141,6 +154,7 @@ class PerceptionWorker:
         occluders: Occluders = no_occluders,
         clock: Clock = time.monotonic,
         time_scale: float = 1.0,
+        catch_up: bool = False,
     ) -> None:
         names = [c.name for c in channels]
         if len(set(names)) != len(names):
@@ -153,6 +167,7 @@ class PerceptionWorker:
         self._occluders = occluders
         self._clock = clock
         self.time_scale = float(time_scale)
+        self.catch_up = bool(catch_up)
         self._scheduled = [c for c in self.channels if not c.free_running]
         self._streams = [c for c in self.channels if c.free_running]
         self.origin: float | None = None
@@ -176,7 +191,7 @@ class PerceptionWorker:
         """Scene time 0 is clock time ``origin`` (default: now); the schedule starts there."""
         self.origin = self._clock() if origin is None else float(origin)
         specs = [c.spec for c in self._scheduled]
-        self._schedule = FrameSchedule(specs, self.origin, self.time_scale)
+        self._schedule = FrameSchedule(specs, self.origin, self.time_scale, self.catch_up)
 
     def scene_time(self, t: float) -> float:
         """The scene time of clock time ``t`` (never before 0)."""
