@@ -48,4 +48,9 @@ if grep -q '"failed"' "$work/app.json"; then
   echo "smoke: FAIL the app's session failed" >&2; cat "$work/app.json" >&2; exit 1
 fi
 cp "$work/app.png" "$root/dist/smoke-app.png" 2>/dev/null || true
+# The desktop entry the bundle installs starts the bundle's executable and validates.
+step desktop bare env XDG_DATA_HOME="$work/share" "$exe" install-desktop --user
+entry="$work/share/applications/hapticloud.desktop"
+grep -qF "Exec=$exe app %f" "$entry"
+if command -v desktop-file-validate >/dev/null; then desktop-file-validate "$entry"; fi
 echo "smoke: bundle $(du -sh "$bundle" | cut -f1) at $bundle; all steps passed"
