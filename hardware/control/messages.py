@@ -107,13 +107,14 @@ def estimate_to_wire(est: Any) -> tuple[Any, ...]:
         int(est.seq),
         float(est.free_m),
         None if est.hip is None else tuple(float(x) for x in est.hip),
+        float(est.residual_m),
     )
 
 
 def estimate_from_wire(wire: tuple[Any, ...]) -> Any:
     from hapticloud.core.perception import SurfaceEstimate
 
-    t, camera, centroid, normal, valid, quality, reason, method, seq, free_m, hip = wire
+    t, camera, centroid, normal, valid, quality, reason, method, seq, free_m, hip, residual_m = wire
     return SurfaceEstimate(
         t,
         camera,
@@ -126,6 +127,7 @@ def estimate_from_wire(wire: tuple[Any, ...]) -> Any:
         seq=seq,
         free_m=free_m,
         hip=None if hip is None else np.array(hip),
+        residual_m=residual_m,
     )
 
 
@@ -143,7 +145,12 @@ ESTIMATE_WIRE_FIELDS = (
     "seq",
     "free_m",
     "hip",
+    "residual_m",
 )
+
+#: Fields a recording made before they existed may lack, with what their absence means
+#: (``residual_m`` 0: the fit's noise is unknown, so the fusion weighs the camera like the others).
+_ESTIMATE_FIELDS_ADDED = {"residual_m": 0.0}
 
 
 def estimate_to_dict(est: Any) -> dict[str, Any]:
@@ -156,7 +163,13 @@ def estimate_to_dict(est: Any) -> dict[str, Any]:
 
 def estimate_from_dict(data: Mapping[str, Any]) -> Any:
     """The estimate of :func:`estimate_to_dict`'s dict (``KeyError`` naming a missing field)."""
-    return estimate_from_wire(tuple(data[name] for name in ESTIMATE_WIRE_FIELDS))
+    return estimate_from_wire(
+        tuple(
+            data[name] if name not in _ESTIMATE_FIELDS_ADDED else data.get(name, default)
+            for name in ESTIMATE_WIRE_FIELDS
+            for default in (_ESTIMATE_FIELDS_ADDED.get(name),)
+        )
+    )
 
 
 def send_estimate(conn: Any, est: Any) -> None:

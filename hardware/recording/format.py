@@ -167,6 +167,10 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "seq": {"type": "integer"},
             "free_m": {"type": "number"},
             "hip": {"anyOf": [_number_array(3), {"type": "null"}]},
+            "residual_m": {
+                "type": "number",
+                "description": "the surface fit's noise (m); 0 or absent: unknown",
+            },
         },
     },
     CONTROL_SCHEMA: {
