@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from hapticloud.core.control import ControllerConfig
+from hapticloud.core.perception import SurfaceEstimate
 from hapticloud.core.scene import load_scene
 from hapticloud.core.scene.assembly import assemble
 from hapticloud.hardware.control.messages import (
@@ -18,6 +19,7 @@ from hapticloud.hardware.control.messages import (
     Enable,
     InjectFault,
     Reset,
+    estimate_to_wire,
 )
 from hapticloud.hardware.control.tick import FAULT_RESET_TICKS, ControlTick
 from hapticloud.hardware.drives import DriveTarget
@@ -60,12 +62,18 @@ def estimate(tick: ControlTick, t: float, *, camera="front", quality=1.0, seq=1)
     """A camera's valid estimate: a plane 5 cm below the HIP, facing it (wire form)."""
     tick.robot.update(np.asarray(tick.loop.robot.q), np.zeros(6))
     hip = tick.robot.hip_position()
-    centroid = tuple(float(x) for x in hip + np.array([0.0, 0.0, -0.05]))
-    hip_t = tuple(float(x) for x in hip)
-    return (
-        "estimate",
-        (t, camera, centroid, (0.0, 0.0, 1.0), True, quality, "", "plane", seq, 0.0, hip_t),
+    est = SurfaceEstimate(
+        t,
+        camera,
+        hip + np.array([0.0, 0.0, -0.05]),
+        np.array([0.0, 0.0, 1.0]),
+        True,
+        method="plane",
+        quality=quality,
+        seq=seq,
+        hip=hip,
     )
+    return ("estimate", estimate_to_wire(est))
 
 
 def enabled(scene, **kwargs) -> ControlTick:
@@ -234,3 +242,48 @@ def test_min_distance_counts_only_while_enabled_and_faults_go_to_the_emulator(sc
     assert tick.events[-1][2:] == ("inject", "inject_drive_fault")
     with pytest.raises(TypeError):
         tick.command(("enable",), 0.02, feedback(scene))
+
+
+def test_estimates_stamped_at_capture_tens_of_ms_old_leave_the_loop_enabled_and_bounded(scene):
+    """Estimates as a camera stamps them, with the time the robot was at the captured pose (the
+    bench, ``run --hardware``): two 30 Hz cameras each delivered 15-45 ms after capture, so that
+    they arrive out of order, and one frame delivered 0.5 s late. The session stays ENABLED with
+    no reaction and a valid surface, each intake refits once and the window stays the window."""
+    tick = enabled(scene)
+    fusion = tick.fusion
+    fits = []  # what each intake's refit returned
+    prepare = fusion.prepare
+    fusion.prepare = lambda: fits.append(prepare()) or fits[-1]
+    rng = np.random.default_rng(3)
+    deliveries = []
+    for i, camera in enumerate(("front", "right45")):
+        for m in range(45):
+            captured = 0.01 + i / 60.0 + m / 30.0
+            delivered = captured + (0.5 if (i, m) == (1, 20) else rng.uniform(0.015, 0.045))
+            deliveries.append((delivered, captured, camera, m))
+    deliveries.sort()
+    arrived = [d[1] for d in deliveries]
+    assert arrived != sorted(arrived)  # capture times out of order at the loop
+    window_cap = int(fusion.config.window_s * 60.0) + 2
+    added_intakes = 0
+    k = 2
+    while deliveries:
+        t = k * PERIOD
+        tick.step(t, feedback(scene))
+        assert tick.state is SessionState.ENABLED and tick.level is ReactionLevel.NONE
+        waiting = []
+        while deliveries and deliveries[0][0] <= t:
+            _, captured, camera, m = deliveries.pop(0)
+            waiting.append(estimate(tick, captured, camera=camera, seq=m))
+        if waiting:
+            refits = len(fits)
+            added = tick.take_estimates(waiting)
+            assert len(fits) == refits + added  # one refit per intake that added
+            added_intakes += added
+            assert fits[-1] is not None and fits[-1].n_samples <= window_cap
+        if t > 0.06:
+            assert tick.result.fused_valid
+            assert tick.estimate_age(t) < WD.estimate_timeout_s
+        k += 1
+    assert len(fits) == added_intakes > 60
+    assert fusion.n_late == 1  # the frame 0.5 s late: older than the window, left out
