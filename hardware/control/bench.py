@@ -101,8 +101,8 @@ def bench_perception(control: ControlProcess | None, decimation: int = 1) -> Any
             realtime=False,
         )
         channels.append(RenderedChannel(spec, source, CameraPipeline(camera=c.name)))
-    # The HIP does not move: its estimates are stamped when sent, as this bench always did.
-    sinks = [ControlSink(control.estimate_connection, stamp_on_send=True)] if control else []
+    # Estimates stamped at capture, as a camera stamps them (and as in ``run --hardware``).
+    sinks = [ControlSink(control.estimate_connection)] if control is not None else []
     worker = PerceptionWorker(channels, FixedPose(hip), sinks)
     worker.start_thread(name="bench-perception", nice=19)
     return worker
@@ -181,6 +181,7 @@ def run_bench(
         "mlockall": bool(info.get("mlockall")),
         "control_cpu": info.get("cpu"),
         "bus_cycle": _bus_cycle(res, run["t_mark"]),
+        "machine_stalls": _machine_stalls(res, run["t_mark"]),
         "snapshots_received": run["snapshots"],
         "snapshots_dropped": res["snapshots_dropped"],
         "transitions": [t[1:] for t in res["transitions"]],
@@ -279,6 +280,32 @@ def _window_figures(res: Mapping[str, Any], t_mark: float) -> dict[str, Any]:
         # Snapshots and refits put off to a later tick for want of time left in the period.
         "deferred": res.get("deferred"),
         "frames_read_ahead_median": float(np.median(log["ahead_frames"][sel])) if ticks else None,
+    }
+
+
+#: How long after a stall of the drives' process a fault still counts as the stall's (s): the
+#: loop sees the drives' fault bits or their missing answers within a few ticks of it.
+_STALL_FAULT_S = 0.02
+
+
+def _machine_stalls(res: Mapping[str, Any], t_mark: float) -> dict[str, Any]:
+    """The drive emulator's stalls in the window (its thread waits 2 ms at most: a longer gap is
+    the machine not running it) and whether each fault of the session fell in one. A fault in a
+    stall is the machine's: with several real-time loops on a small machine (other benches,
+    sessions) every real-time task stops for milliseconds together, the loop's too, and the
+    drives time out (``command_timeout_s``) or go quiet (``feedback_lost_s``)."""
+    stalls = [
+        (float(e[0]), float(e[3].split()[0]))
+        for e in res["emulator_events"]
+        if e[2] == "stall" and float(e[0]) >= t_mark
+    ]
+    faults = [tr for tr in res["transitions"] if tr[2] == "fault" and tr[0] >= t_mark]
+    in_stall = [any(t - gap <= tr[0] <= t + _STALL_FAULT_S for t, gap in stalls) for tr in faults]
+    return {
+        "count": len(stalls),
+        "max_ms": round(1e3 * max((gap for _, gap in stalls), default=0.0), 2),
+        "faults": len(faults),
+        "faults_in_stall": sum(in_stall),
     }
 
 
@@ -385,6 +412,13 @@ def main(
         f"<= {TARGETS['misses_per_10k']:.0f} miss per 10,000: "
         f"{'pass' if res['pass'] else 'FAIL'}\n"
     )
+    stalls = res["machine_stalls"]
+    if stalls["count"]:
+        out.write(
+            f"the machine stalled the drives' process {stalls['count']} times (max "
+            f"{stalls['max_ms']} ms); faults in a stall: {stalls['faults_in_stall']} of "
+            f"{stalls['faults']}\n"
+        )
     return 0
 
 

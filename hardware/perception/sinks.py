@@ -13,10 +13,8 @@ A sink's :meth:`~Sink.put` runs in the worker's thread: it must not block for lo
 
 from __future__ import annotations
 
-import dataclasses
 import queue
 import select
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -71,25 +69,13 @@ class ControlSink:
     ``drop_when_full``: an estimate the pipe cannot take now is dropped and counted
     (:attr:`dropped`) instead of waiting for the loop to read (a display that must not stall).
     When the pipe is gone (the control process stopped) the sink goes quiet (:attr:`alive`).
-    ``stamp_on_send``: the estimate's ``t`` is the time it is sent (``clock()``), not its
-    capture: for a robot held still, whose pose is true at any time (the bench), never for a
-    moving robot.
     """
 
     wants_frames = False
 
-    def __init__(
-        self,
-        conn: Any,
-        *,
-        drop_when_full: bool = False,
-        stamp_on_send: bool = False,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> None:
+    def __init__(self, conn: Any, *, drop_when_full: bool = False) -> None:
         self._conn = conn
         self._drop_when_full = drop_when_full
-        self._stamp_on_send = stamp_on_send
-        self._clock = clock
         self.alive = True
         self.sent = 0
         self.dropped = 0
@@ -101,10 +87,7 @@ class ControlSink:
             if self._drop_when_full and not select.select((), (self._conn.fileno(),), (), 0.0)[1]:
                 self.dropped += 1
                 return
-            est = item.estimate
-            if self._stamp_on_send:
-                est = dataclasses.replace(est, t=self._clock())
-            send_estimate(self._conn, est)
+            send_estimate(self._conn, item.estimate)
             self.sent += 1
         except (OSError, ValueError):
             self.alive = False  # the control process is gone: perception goes on alone

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 
 import pytest
-from hapticloud.hardware.control.bench import machine_counters, run_bench
+from hapticloud.hardware.control.bench import _machine_stalls, machine_counters, run_bench
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -26,5 +26,29 @@ def test_bus_bench_reports_ticks_misses_and_the_machine_counters() -> None:
     assert res["tick_us_enabled"]["median"] is not None
     assert "ahead" in res["breakdown_us"] and res["frames_read_ahead_median"] >= 6.0
     assert set(res["deferred"]) == {"snapshot", "refit"}
+    assert set(res["machine_stalls"]) == {"count", "max_ms", "faults", "faults_in_stall"}
     if sys.platform.startswith("linux"):
         assert "thp_collapse_alloc" in res["machine_counters_during_run"]
+
+
+def test_a_fault_in_a_stall_of_the_drives_process_is_told_as_the_machines() -> None:
+    # The emulator logs a stall when it wakes; a fault within it (or just after) is the stall's.
+    res = {
+        "emulator_events": [
+            (9.0, -1, "stall", "0.004000 s"),  # before the window
+            (10.0, -1, "stall", "0.009257 s"),
+            (10.0, 0, "fault", "0x8250"),
+            (12.0, -1, "stall", "0.005500 s"),
+        ],
+        "transitions": [
+            (5.0, "ready", "enabled", "bench"),
+            (10.001, "enabled", "fault", "watchdog feedback: drive feedback lost (10.55 ms)"),
+            (11.0, "enabled", "fault", "watchdog drive_fault: a drive reports a fault"),
+        ],
+    }
+    assert _machine_stalls(res, t_mark=9.5) == {
+        "count": 2,
+        "max_ms": 9.26,
+        "faults": 2,
+        "faults_in_stall": 1,
+    }

@@ -318,12 +318,6 @@ def test_control_sink_sends_the_one_wire_form_and_goes_quiet_when_the_pipe_is_go
     sink.put(_item())  # quiet, no error
 
 
-def test_control_sink_can_stamp_an_estimate_when_it_sends_it() -> None:
-    recv, send = mp.Pipe(duplex=False)
-    ControlSink(send, stamp_on_send=True, clock=lambda: 77.0).put(_item())
-    assert estimate_from_wire(recv.recv()[1]).t == 77.0
-
-
 def test_control_sink_can_drop_instead_of_waiting_for_a_full_pipe() -> None:
     recv, send = mp.Pipe(duplex=False)
     sink = ControlSink(send, drop_when_full=True)
