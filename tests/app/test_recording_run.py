@@ -90,7 +90,7 @@ def test_a_plain_mcap_reader_reads_every_channel(recorded: dict[str, Path]) -> N
     assert name == "hapticloud.SurfaceEstimate"
     assert set(est) == {
         "t", "camera", "centroid", "normal", "valid", "quality", "reason", "method", "seq",
-        "free_m", "hip",
+        "free_m", "hip", "residual_m",
     }  # fmt: skip
 
 
