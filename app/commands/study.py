@@ -24,7 +24,7 @@ from hapticloud.core.errors import ConfigError
 from . import check_outputs, positive_float, positive_int
 
 DEFAULT_FRAMES = 15
-EXTREME_SCENES = ("sphere_head_occluded", "cylinder_arm", "crease_forearm_on_chest")
+EXTREME_SCENES = ("sphere_head_occluded", "cylinder_arm", "tilted_torso_occluded")
 EXTREME_BUDGET_MM = 10.0
 
 
@@ -135,7 +135,7 @@ def _scenes(args: argparse.Namespace) -> tuple[str, ...]:
 
 def _request(args: argparse.Namespace) -> _Request:
     from hapticloud.core.studies.trade import knobs as k
-    from hapticloud.core.studies.trade.evaluate import LOOP_DURATION_S, TrialSpec
+    from hapticloud.core.studies.trade.evaluate import LOOP_DURATION_S, TrialSpec, shipped_default
 
     modes = [bool(args.grid), bool(args.search), bool(args.extremes)]
     if sum(modes) != 1:
@@ -164,7 +164,7 @@ def _request(args: argparse.Namespace) -> _Request:
         raise ConfigError(f"--grid: {size:,} trials, over {k.MAX_TRIALS_UNASKED:,}; add --yes")
     trials = k.grid_trials(grids)
     keys = list(dict(grids))
-    default = {key: k.knob(key).default for key in keys}
+    default = {key: shipped_default(key) for key in keys}
     if default not in trials:
         trials.append(default)  # the shipped default is always measured beside the grid
     specs = [dataclasses.replace(template, params=p) for p in trials]
@@ -273,11 +273,14 @@ def _report(
     args: argparse.Namespace, request: _Request, outcome: Any, workers: int, wall_s: float
 ) -> int:
     from hapticloud.core.studies.trade import front as fr
-    from hapticloud.core.studies.trade.knobs import knob
+    from hapticloud.core.studies.trade.evaluate import shipped_default
 
     trials = outcome.finished
     if args.search:
-        default = {key: knob(key).default for key in request.keys}
+        # NSGA-II asks for a parameter set again now and then: each is shown once.
+        unique = {json.dumps(t.params, sort_keys=True): t for t in reversed(trials)}
+        trials = [t for t in trials if unique.get(json.dumps(t.params, sort_keys=True)) is t]
+        default = {key: shipped_default(key) for key in request.keys}
         index = [i for i, t in enumerate(trials) if _same(t.params, default)]
         default_index = index[0] if index else None
     else:
@@ -290,7 +293,8 @@ def _report(
     presets = fr.pick_presets(trials, front, default_index)
     t = request.template
     print(
-        f"{len(trials)} trials ({outcome.cached} from the cache, {outcome.measured} measured) in "
+        f"{len(trials)} distinct trials ({outcome.cached} from the cache, {outcome.measured} "
+        f"measured) in "
         f"{wall_s:.1f} s on {workers} workers; {t.frames} frames per scene x {len(t.scenes)} "
         f"scenes = {t.frames * len(t.scenes)} estimates per trial; front over "
         f"{', '.join(fr.front_objectives(trials))}: {len(front)} non-dominated (*), "
@@ -383,11 +387,12 @@ def _write_presets(
 
 def _report_extremes(request: _Request, outcome: Any, wall_s: float) -> int:
     failing = []
-    refused = 0
+    refused: list[str] = []
     for label, result in zip(request.extremes, outcome.results, strict=True):
         if result is None:
             continue
-        refused += any(r.startswith("refused") for r in result.reasons)
+        if any(r.startswith("refused") for r in result.reasons):
+            refused.append(f"refused {label}: {result.reasons[0]}")
         problems = list(result.problems)
         measured = result.objectives.get("valid_share", math.nan) > 0
         if measured and not math.isfinite(result.objectives.get("latency_ms_median", math.nan)):
@@ -400,9 +405,11 @@ def _report_extremes(request: _Request, outcome: Any, wall_s: float) -> int:
             failing.append((label, problems))
     done = len(outcome.finished)
     print(
-        f"extremes: {done} cases in {wall_s:.1f} s ({refused} refused by the parameters' rules, "
-        f"with their reason), {len(failing)} failing"
+        f"extremes: {done} cases in {wall_s:.1f} s ({len(refused)} refused with their reason), "
+        f"{len(failing)} failing"
     )
+    for line in refused:
+        print(line)
     for label, problems in failing:
         more = f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""
         print(f"FAIL {label}: {problems[0]}{more}")

@@ -17,10 +17,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from hapticloud.core.config import ParamInfo
-from hapticloud.core.studies.trade.evaluate import TrialResult, TrialSpec
+from hapticloud.core.studies.trade.evaluate import TrialResult, TrialSpec, shipped_default
 from hapticloud.core.studies.trade.front import FRONT_OBJECTIVES, LOOP_FRONT_OBJECTIVE
-from hapticloud.core.studies.trade.knobs import SearchRange, is_closed_loop, knob
+from hapticloud.core.studies.trade.knobs import SearchRange, is_closed_loop
 
 from .cache import TrialCache, code_version
 from .cluster import worker_count
@@ -60,13 +59,8 @@ def study_name(
 def _default_in_space(space: Sequence[SearchRange]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for r in space:
-        info: ParamInfo = knob(r.key)
-        out[r.key] = min(max(float(info.default), r.lo), r.hi)
+        out[r.key] = min(max(float(shipped_default(r.key)), r.lo), r.hi)
     return out
-
-
-def _constraints(trial: Any) -> Sequence[float]:
-    return trial.user_attrs.get("constraint", (1.0,))
 
 
 def nsga2(
@@ -103,7 +97,7 @@ def nsga2(
             optuna.delete_study(study_name=name, storage=storage)
         except KeyError:
             pass
-    sampler = NSGAIISampler(population_size=population, seed=seed, constraints_func=_constraints)
+    sampler = NSGAIISampler(population_size=population, seed=seed)
     study = optuna.create_study(
         study_name=name,
         storage=storage,
@@ -136,7 +130,7 @@ def nsga2(
     def tell(trial: Any, result: TrialResult) -> None:
         values = [float(result.objectives.get(n, math.nan)) for n in names]
         trial.set_user_attr("result", result.to_json())
-        trial.set_user_attr("constraint", (1.0 if result.unsafe else -1.0,))
+        trial.set_constraint("unsafe", 1.0 if result.unsafe else -1.0)  # > 0: infeasible
         if all(math.isfinite(v) for v in values):
             study.tell(trial, values)
         else:

@@ -75,7 +75,8 @@ def test_a_small_grid_on_one_local_worker(tmp_path: Path, capsys) -> None:
     argv += ["--plot", str(tmp_path / "plots"), "--write-presets", str(tmp_path / "presets")]
     assert cli.main(argv) == 0
     text = capsys.readouterr().out
-    assert "2 trials (0 from the cache, 2 measured)" in text and "3 frames per scene" in text
+    assert "2 distinct trials (0 from the cache, 2 measured)" in text
+    assert "3 frames per scene" in text
     data = json.loads(out.read_text())
     assert len(data["trials"]) == 2
     assert {"params", "objectives", "unsafe", "worker"} <= set(data["trials"][0])
@@ -89,5 +90,18 @@ def test_a_small_grid_on_one_local_worker(tmp_path: Path, capsys) -> None:
 
     # The rerun reads every trial back: same figures, nothing measured.
     assert cli.main(argv) == 0
-    assert "2 trials (2 from the cache, 0 measured)" in capsys.readouterr().out
+    assert "2 distinct trials (2 from the cache, 0 measured)" in capsys.readouterr().out
     assert json.loads(out.read_text())["trials"] == data["trials"]
+
+
+def test_the_app_offers_the_shipped_presets(qtbot) -> None:
+    from hapticloud.app.param_panel import ParamPanel
+    from hapticloud.assets import asset_path
+
+    panel = ParamPanel(LiveConfig())
+    qtbot.addWidget(panel)
+    actions = {a.text(): a for a in panel.shipped_presets.actions()}
+    assert {"fast", "balanced", "accurate"} <= set(actions)
+    actions["fast"].trigger()
+    shipped = tomllib.loads(asset_path("presets", "fast.toml").read_text())
+    assert panel.config == LiveConfig.from_dict(shipped)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ...errors import ConfigError
+from ...errors import ConfigError, HapticloudError
 from ...perception import CameraPipeline, SurfaceEstimate
 from ...scene import SceneConfig
 from ...sim import BenchScene, ContactScene, contact_bench_scenes, perception_bench_scenes
@@ -144,6 +144,17 @@ def _json_number(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
+def shipped_default(key: str, loop_scene: str = LOOP_SCENE) -> Any:
+    """The value a knob has when the study does not turn it: the parameter's default, or for a
+    closed-loop knob the closed-loop scene's own value (a scene file tunes some, e.g. the
+    impacts scene's stiffer fusion)."""
+    if is_closed_loop(key):
+        from ...scene import load_scene
+
+        return load_scene(loop_scene).config.get_path(key)
+    return SceneConfig().get_path(key)
+
+
 # ----- scenes and their frames -------------------------------------------------------------------
 def study_scenes() -> dict[str, BenchScene]:
     """The scenes a study may use: the perception benchmark's eight and the training scenes where
@@ -235,8 +246,10 @@ def _check_estimate(
         return "" if est.reason else "invalid without a reason"
     if not all(math.isfinite(e) for e in errors):
         return "valid with a non-finite error"
-    if budget_mm is not None and abs(errors[2]) > budget_mm:
-        return f"valid but d_proj off by {errors[2]:+.1f} mm (budget {budget_mm:g} mm)"
+    if budget_mm is not None and errors[2] > budget_mm:
+        return (
+            f"valid but the surface {errors[2]:+.1f} mm farther than it is (budget {budget_mm:g})"
+        )
     return ""
 
 
@@ -291,8 +304,10 @@ def _closed_loop(spec: TrialSpec) -> dict[str, float]:
 def evaluate(spec: TrialSpec, *, budget_mm: float | None = None) -> TrialResult:
     """Measure one trial (see the module docstring).
 
-    ``budget_mm``: when given, a valid estimate whose d_proj is off by more is a problem (the
-    extremes' check); a config the parameters' rules refuse is reported, not raised.
+    ``budget_mm``: when given, a valid estimate that reports the surface farther than it is by
+    more (d_proj error on the unsafe side; nearer is conservative) is a problem (the extremes'
+    check). A config the parameters' rules refuse, or the closed-loop scene refuses to build
+    with, is reported with its reason, not raised.
     """
     t0 = time.perf_counter()
     try:
@@ -313,10 +328,14 @@ def evaluate(spec: TrialSpec, *, budget_mm: float | None = None) -> TrialResult:
         "normal_deg_median": _median_p90(tally.normal_deg)[0],
         "valid_share": tally.near_valid / tally.near if tally.near else float("nan"),
     }
-    objectives.update(
-        _closed_loop(spec) if spec.closed_loop else dict.fromkeys(LOOP_OBJECTIVES, float("nan"))
-    )
     reasons = []
+    loop = dict.fromkeys(LOOP_OBJECTIVES, float("nan"))
+    if spec.closed_loop:
+        try:
+            loop = _closed_loop(spec)
+        except HapticloudError as err:
+            reasons.append(f"refused at build: {err}")
+    objectives.update(loop)
     if tally.near and 1.0 - objectives["valid_share"] > MAX_INVALID_SHARE:
         reasons.append(
             f"{100 * (1 - objectives['valid_share']):.0f} % of the frames near the surface "
@@ -324,7 +343,7 @@ def evaluate(spec: TrialSpec, *, budget_mm: float | None = None) -> TrialResult:
         )
     if not math.isfinite(objectives["centroid_mm_p90"]):
         reasons.append("no valid estimate")
-    if spec.closed_loop:
+    if spec.closed_loop and not reasons:
         margin = objectives["min_margin_mm"]
         if not margin >= UNSAFE_MARGIN_MM:
             reasons.append(f"true margin {margin:+.1f} mm (allowed {UNSAFE_MARGIN_MM:g} mm)")
@@ -353,5 +372,6 @@ __all__ = [
     "TrialSpec",
     "check_scenes",
     "evaluate",
+    "shipped_default",
     "study_scenes",
 ]
