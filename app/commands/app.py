@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import re
-import sys
 from pathlib import Path
 
 from hapticloud.core.errors import ConfigError
@@ -149,14 +148,13 @@ def _run_window(
     exit_after: float | None,
     shot: Path | None,
 ) -> int:
+    from hapticloud.app.commands.display import desktop_application
     from hapticloud.app.main_window import MainWindow
     from hapticloud.app.screenshot import run_window
     from hapticloud.hardware.live.session import Session
     from hapticloud.hardware.live.source import LiveSource
-    from PyQt6 import QtWidgets
 
-    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
-    app.setApplicationName("hapticloud")
+    app = desktop_application()
     scene = settings.scene  # type: ignore[attr-defined]
     window = MainWindow(
         lambda cfg, session=None: LiveSource(settings, cfg, session=session),  # type: ignore[arg-type]

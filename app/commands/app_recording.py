@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -89,12 +88,11 @@ def run_recording(args: argparse.Namespace) -> int:
 def _window(
     source: Any, args: argparse.Namespace, exit_after: float | None, shot: Path | None
 ) -> int:
+    from hapticloud.app.commands.display import desktop_application
     from hapticloud.app.recording_window import RecordingWindow
     from hapticloud.app.screenshot import run_window
-    from PyQt6 import QtWidgets
 
-    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
-    app.setApplicationName("hapticloud")
+    app = desktop_application()
     window = RecordingWindow(source)
     window.controls.color_mode.setCurrentText(args.color_by)
     window.controls.preset_actions[args.view].trigger()

@@ -97,3 +97,21 @@ def window_display(
             )
         display = virtual_display()
     return display, exit_after, shot
+
+
+def desktop_application() -> object:
+    """The ``QApplication`` of a window command, named as the desktop entry that
+    ``hapticloud install-desktop`` installs (so a desktop groups the window under it) and with
+    the shipped icon."""
+    import sys
+
+    from hapticloud.assets import asset_path
+    from PyQt6 import QtGui, QtWidgets
+
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
+    app.setApplicationName("hapticloud")
+    QtGui.QGuiApplication.setDesktopFileName("hapticloud")
+    icon = asset_path("icons", "hapticloud.svg")
+    if icon.is_file():
+        QtWidgets.QApplication.setWindowIcon(QtGui.QIcon(str(icon)))
+    return app

@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 
+from hapticloud.hardware.recording.writer import software_version
+
 NOT_INSTALLED = "not installed"
 
 
@@ -63,19 +65,11 @@ def library_version(library: Library) -> str:
     return str(getattr(module, "__version__", "unknown"))
 
 
-def hapticloud_version() -> str:
-    """hapticloud's installed version (``unknown`` when run from an uninstalled tree)."""
-    try:
-        return version("hapticloud")
-    except PackageNotFoundError:
-        return "unknown"
-
-
 def version_lines(libraries: Sequence[Library] = LIBRARIES) -> list[str]:
     """The ``--version`` block: hapticloud, Python and one line per library."""
     how = "bundle" if getattr(sys, "frozen", False) else sys.prefix
     lines = [
-        f"hapticloud {hapticloud_version()}",
+        f"hapticloud {software_version()}",
         f"Python {platform.python_version()} ({platform.system()} {platform.machine()}, {how})",
     ]
     width = max(len(lib.label) for lib in libraries)
