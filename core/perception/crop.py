@@ -204,6 +204,40 @@ def _inside_prims_cols(cols: FloatArray, prims: tuple[Primitive, ...], margin: f
     return mask
 
 
+#: Sampling step of :func:`hidden_length` (m): the length it returns is exact to one step.
+HIDDEN_STEP_M = 2.5e-4
+
+
+def hidden_length(
+    start: ArrayLike,
+    end: ArrayLike,
+    exclude: Sequence[Primitive] | None,
+    margin_m: float,
+) -> float:
+    """Length (m) of the segment ``start`` -> ``end`` that lies in the margin the crop adds.
+
+    That is, inside some exclusion primitive grown by ``margin_m`` but outside every primitive
+    itself: the crop removed whatever the camera saw there, yet no robot is there, so a surface
+    there would be unseen. An estimate claiming the segment free must not rely on more of it
+    than it accepts unseen elsewhere (``max_support_gap_m``). Sampled every 0.25 mm.
+    """
+    a = as_vector3(start, "start")
+    b = as_vector3(end, "end")
+    prims = _as_primitives(exclude)
+    length = float(np.linalg.norm(b - a))
+    if not prims or margin_m <= 0.0 or not length > 0.0:
+        return 0.0
+    near = _near_primitives(prims, a, length, margin_m)
+    if not near:
+        return 0.0
+    n = max(1, math.ceil(length / HIDDEN_STEP_M))
+    s = (np.arange(n, dtype=np.float64) + 0.5) / n
+    cols = np.ascontiguousarray(a[:, None] + s[None, :] * (b - a)[:, None])
+    grown = _inside_prims_cols(cols, near, margin_m)
+    solid = _inside_prims_cols(cols, near, 0.0)
+    return length * np.count_nonzero(grown & ~solid) / n
+
+
 def _finish(
     cand: FloatArray,
     hip: FloatArray,

@@ -15,7 +15,7 @@ from ..validation import as_finite_scalar, as_unit_vector3, as_vector3
 from .abstraction import estimate_surface
 from .cluster import adapted_to_spacing, cluster_voxels
 from .config import PerceptionConfig
-from .crop import CropResult, crop_depth_frame, crop_points
+from .crop import HIDDEN_STEP_M, CropResult, crop_depth_frame, crop_points, hidden_length
 from .estimate import SurfaceEstimate
 from .reconstruct import SurfaceMemory
 from .timing import StageTimer
@@ -115,7 +115,7 @@ class CameraPipeline:
         timer = StageTimer()
         with timer.stage("crop"):
             cropped = crop_points(points_world, h, exclude, self._config.crop)
-        return self._finish(cropped, h, axis, t, timer)
+        return self._finish(cropped, h, axis, t, timer, exclude)
 
     def process_depth(
         self,
@@ -142,11 +142,17 @@ class CameraPipeline:
         timer = StageTimer()
         with timer.stage("crop"):
             cropped = crop_depth_frame(frame, h, exclude, self._config.crop)
-        return self._finish(cropped, h, frame.axis_world, t, timer)
+        return self._finish(cropped, h, frame.axis_world, t, timer, exclude)
 
     # ----- stages B-E ----------------------------------------------------------------------------
     def _finish(
-        self, cropped: CropResult, h: FloatArray, axis: FloatArray, t: float, timer: StageTimer
+        self,
+        cropped: CropResult,
+        h: FloatArray,
+        axis: FloatArray,
+        t: float,
+        timer: StageTimer,
+        exclude: Sequence[Primitive] | None,
     ) -> SurfaceEstimate:
         cfg = self._config
         self._seq += 1
@@ -206,6 +212,20 @@ class CameraPipeline:
                 return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
             # Extrapolated: what the points do not show is taken as nearer, in proportion.
             centroid = centroid + (cfg.extrapolation_margin * (gap - supported)) * fit.normal
+        margin = cfg.crop.exclude_margin_m
+        if fit.valid:
+            # The crop removed what it saw in the robot's grown shapes: a surface there is unseen,
+            # and a wide margin around the HIP's ball can swallow the surface nearest to it while
+            # the fit bridges the hole from farther points (reporting the surface farther).
+            hidden = hidden_length(h, centroid, exclude, margin)
+            if hidden > cfg.max_support_gap_m + HIDDEN_STEP_M:
+                reason = (
+                    f"{hidden * 1e3:.0f} mm of the way from the HIP to the closest point lies in "
+                    f"the robot's shapes grown by crop.exclude_margin_m {margin * 1e3:.0f} mm "
+                    f"(> max_support_gap_m {cfg.max_support_gap_m * 1e3:.1f} mm): the surface "
+                    "there was removed with the robot and may be nearer"
+                )
+                return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
         if not fit.valid:
             reason = fit.reason
             free = 0.0
@@ -217,6 +237,13 @@ class CameraPipeline:
                 _, min_cluster = adapted_to_spacing(cfg.cluster, size, cropped.spacing_m)
                 if stray >= min_cluster:
                     reason = f"{stray} points in clusters too small to trust"
+                elif cropped.n_robot and margin > cfg.max_support_gap_m:
+                    # The grown robot shapes removed what lay in their margin: not seen empty.
+                    reason = (
+                        f"workspace empty but for {cropped.n_robot} points removed with the "
+                        f"robot's shapes grown by crop.exclude_margin_m {margin * 1e3:.0f} mm "
+                        f"(> max_support_gap_m {cfg.max_support_gap_m * 1e3:.1f} mm): unknown"
+                    )
                 elif seen >= cfg.min_seen_fraction:
                     free = cfg.crop.workspace_radius_m
                     reason = "workspace seen empty" + (f" ({stray} stray points)" if stray else "")

@@ -9,12 +9,14 @@ import pytest
 from hapticloud.core.camera import CameraIntrinsics, DepthFrame, look_at
 from hapticloud.core.errors import ConfigError, InputError
 from hapticloud.core.geometry import Box, Capsule, Sphere, inside_any
+from hapticloud.core.perception import CameraPipeline, PerceptionConfig
 from hapticloud.core.perception.crop import (
     CropConfig,
     CropResult,
     _slope_range,
     crop_depth_frame,
     crop_points,
+    hidden_length,
     sphere_region,
 )
 from hypothesis import HealthCheck, given, settings
@@ -389,3 +391,69 @@ def test_slope_range_bounds_every_ball_point(cx, cz, r, zlo, dz) -> None:
     s = x[ok] / z[ok]
     tol = 1e-9 * (1 + np.abs(s))
     assert np.all(s >= found[0] - tol) and np.all(s <= found[1] + tol)
+
+
+def test_hidden_length_is_the_margin_a_segment_crosses() -> None:
+    ball = Sphere(HIP, 0.035)
+    down = HIP - np.array([0.0, 0.0, 0.1])
+    # Straight out of the ball: it crosses the whole margin, and nothing more.
+    assert hidden_length(HIP, down, (ball,), 0.02) == pytest.approx(0.02, abs=3e-4)
+    assert hidden_length(HIP, down, (ball,), 0.0) == 0.0
+    assert hidden_length(HIP, down, (), 0.02) == 0.0
+    # Ending inside the margin: only the part of the margin it reaches.
+    inside = HIP - np.array([0.0, 0.0, 0.045])
+    assert hidden_length(HIP, inside, (ball,), 0.05) == pytest.approx(0.01, abs=3e-4)
+    # Passing a box at 5 mm: within a 1 cm margin along its 4 cm face and the rounded edges.
+    box = Box(HIP + np.array([0.0, 0.025, 0.0]), [0.02, 0.02, 0.02])
+    a, b = HIP + np.array([-0.05, 0.0, 0.0]), HIP + np.array([0.05, 0.0, 0.0])
+    edges = 2.0 * math.sqrt(0.01**2 - 0.005**2)
+    assert hidden_length(a, b, (box,), 0.01) == pytest.approx(0.04 + edges, abs=3e-4)
+    assert hidden_length(a, b, (box,), 0.004) == 0.0
+
+
+def _head_cloud(radius: float = 0.09) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(60000, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    return radius * v[v[:, 2] > 0.0]
+
+
+@pytest.mark.parametrize("margin", [0.01, 0.03, 0.05, 0.07, 0.1])
+def test_a_wide_exclusion_margin_never_reports_the_surface_farther(margin: float) -> None:
+    # The end effector's ball at the HIP and its handle, grown by the margin, swallow the surface
+    # nearest to the HIP once the margin reaches it; the fit then bridged the hole from farther
+    # points and reported the surface up to 72 mm farther than it is (margin 0.1 m, HIP 4 cm
+    # from a 9 cm head). An estimate must be within the perception budget or invalid, saying why.
+    cloud = _head_cloud()
+    cfg = PerceptionConfig().replace_path("crop.exclude_margin_m", margin)
+    valid = 0
+    for d in (0.04, 0.06, 0.08, 0.1, 0.11):
+        hip = np.array([0.0, 0.0, 0.09 + d])
+        exclude = (Sphere(hip, 0.035), Capsule(hip, hip + np.array([0.0, 0.135, 0.27]), 0.025))
+        est = CameraPipeline(cfg).process(cloud, hip, [0.0, 0.0, -1.0], exclude=exclude)
+        if est.valid:
+            valid += 1
+            assert np.linalg.norm(est.centroid - hip) - d < 0.005
+        else:
+            assert "crop.exclude_margin_m" in est.reason
+    if margin <= 0.03:  # no more of the way hidden than the pipeline accepts unseen elsewhere
+        assert valid == 5
+
+
+def test_a_workspace_inside_the_grown_robot_is_not_seen_empty() -> None:
+    # A wall 0.1 m from the HIP, its ball grown by 0.1 m past the whole workspace: every wall
+    # point is removed with the robot, and "seen empty" would prove 0.13 m free.
+    wall = np.full((SMALL_K.height, SMALL_K.width), 0.6, np.float32)
+    hip = np.array([0.0, 0.0, 0.5])
+    cfg = PerceptionConfig().with_overrides(
+        {
+            "abstraction.r_out_m": 0.12,
+            "crop.workspace_radius_m": 0.13,
+            "crop.exclude_margin_m": 0.1,
+        }
+    )
+    est = CameraPipeline(cfg).process_depth(_frame_at_origin(wall), hip, (Sphere(hip, 0.035),))
+    assert not est.valid and est.free_m == 0.0
+    assert "crop.exclude_margin_m" in est.reason
+    seen = CameraPipeline(cfg).process_depth(_frame_at_origin(wall), hip, ())
+    assert seen.valid  # the same wall without the robot
