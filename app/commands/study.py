@@ -359,7 +359,7 @@ def _write_presets(
     folder: Path, trials: Sequence[Any], presets: dict[str, int], request: _Request, command: str
 ) -> None:
     from hapticloud.core.studies.trade import front as fr
-    from hapticloud.core.studies.trade.knobs import with_companions
+    from hapticloud.core.studies.trade.knobs import split_camera, with_companions
 
     if not presets:
         raise ConfigError("--write-presets: no trial on the front (every trial unsafe)")
@@ -380,7 +380,18 @@ def _write_presets(
             f"normal {o['normal_deg_median']:.2f} deg, valid {100 * o['valid_share']:.0f} %.",
             "Every parameter not listed keeps its shipped default.",
         ]
-        params = with_companions(trials[presets[name]].params)
+        params, camera = split_camera(trials[presets[name]].params)
+        turned = {k: v for k, v in camera.items() if f"camera.{k}" in request.keys}
+        if turned:
+            # A parameter file holds no camera: the scene's cameras carry these.
+            header.append(
+                "Measured with the camera's "
+                + ", ".join(f"{k} = {v}" for k, v in turned.items())
+                + ": set it on the scene's cameras (cameras.<name>."
+                + ", cameras.<name>.".join(turned)
+                + ")."
+            )
+        params = with_companions(params)
         (folder / f"{name}.toml").write_text(fr.preset_toml(params, header))
     print(f"presets: {', '.join(f'{folder}/{n}.toml' for n in fr.PRESETS)}")
 

@@ -152,14 +152,36 @@ def test_a_refused_config_is_reported_not_raised() -> None:
         "perception.abstraction.quadric.bandwidth_m=0.005",
         "perception.abstraction.quadric.robust=none",
         "perception.cluster.min_cluster_points=1000000",
+        # The margin swallowed the surface next to the HIP: 30.6 mm farther at frame 3.
+        "perception.crop.exclude_margin_m=0.1",
+        "camera.decimation=16",
     ],
 )
 def test_extremes_subset_no_exception_no_nan_budget_or_reason(label: str) -> None:
     params = dict(k.extreme_cases())[label]
-    spec = TrialSpec(params, ("sphere_head_occluded",), 3, companions=False)
+    spec = TrialSpec(params, ("sphere_head_occluded",), 6, companions=False)
     result = evaluate(spec, budget_mm=10.0)
     assert result.problems == ()
     if not result.reasons:
         assert all(
             math.isfinite(result.objectives[n]) for n in ("centroid_mm_p90", "latency_ms_p90")
         )
+
+
+def test_camera_decimation_is_a_knob_of_the_frames() -> None:
+    from hapticloud.core.studies.trade.evaluate import _frames, shipped_default
+
+    assert k.parse_grid("camera.decimation=1,4")[1] == [1, 4]
+    assert shipped_default("camera.decimation") == 1  # the benchmark camera's full resolution
+    for bad in ("camera.decimation=0", "camera.decimation=17", "camera.decimation=2.5"):
+        with pytest.raises(ConfigError, match="camera.decimation"):
+            k.parse_grid(bad)
+    assert k.trial_config({"camera.decimation": 4}) == SceneConfig()  # not a scene parameter
+    full, binned = _frames("sphere_head", 2, 7, 1), _frames("sphere_head", 2, 7, 4)
+    assert binned[0].depth.depth_m.shape == (full[0].depth.depth_m.shape[0] // 4, 848 // 4)
+    coarse = evaluate(TrialSpec({"camera.decimation": 4}, ("sphere_head",), 4))
+    assert math.isfinite(coarse.objectives["centroid_mm_p90"]) and coarse.estimates == 4
+    # 16x binned pixels are ~2.7 cm apart at the HIP: coarser than max_spacing_m, every estimate
+    # invalid with its reason, the trial unsafe.
+    blind = evaluate(TrialSpec({"camera.decimation": 16}, ("sphere_head",), 4))
+    assert blind.unsafe and "no valid estimate" in blind.reasons and blind.problems == ()

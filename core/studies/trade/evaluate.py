@@ -25,8 +25,9 @@ from ...errors import ConfigError, HapticloudError
 from ...perception import CameraPipeline, SurfaceEstimate
 from ...scene import SceneConfig
 from ...sim import BenchScene, ContactScene, contact_bench_scenes, perception_bench_scenes
+from ...sim.depth_camera import SimDepthCamera
 from ..perception import FRAME_RATE_HZ, NEAR_M, R_HIP_M, SEGMENT_FRAMES, hip_track
-from .knobs import is_closed_loop, with_companions
+from .knobs import CAMERA_KNOBS, is_closed_loop, split_camera, with_companions
 
 #: Objectives of every trial: name -> (what, better). Latency is from the depth frame; accuracy
 #: is over the valid estimates against the truth at their HIP.
@@ -148,6 +149,8 @@ def shipped_default(key: str, loop_scene: str = LOOP_SCENE) -> Any:
     """The value a knob has when the study does not turn it: the parameter's default, or for a
     closed-loop knob the closed-loop scene's own value (a scene file tunes some, e.g. the
     impacts scene's stiffer fusion)."""
+    if key in CAMERA_KNOBS:
+        return CAMERA_KNOBS[key].default
     if is_closed_loop(key):
         from ...scene import load_scene
 
@@ -183,10 +186,25 @@ class _Frame:
     true_distance_m: float
 
 
+def _study_camera(camera: SimDepthCamera, decimation: int) -> SimDepthCamera:
+    """The scene's camera rendering ``decimation`` times smaller images (``camera.decimation``)."""
+    if decimation == camera.decimation:
+        return camera
+    if camera.decimation != 1:
+        raise ConfigError(f"camera.decimation: {camera.name} is not a full-resolution camera")
+    return SimDepthCamera(
+        camera.name,
+        camera.intrinsics,
+        camera.pose_world_camera,
+        camera.noise,
+        decimation=decimation,
+    )
+
+
 # Rendering is 3-4x the cost of processing a frame and the same for every trial: each worker
 # renders a scene's frames once (about 1.6 MB a frame; the default study holds ~200 frames).
 @functools.lru_cache(maxsize=16)
-def _frames(scene_name: str, frames: int, seed: int) -> tuple[_Frame, ...]:
+def _frames(scene_name: str, frames: int, seed: int, decimation: int = 1) -> tuple[_Frame, ...]:
     names = list(study_scenes())
     scene = study_scenes()[scene_name]
     index = names.index(scene_name)
@@ -194,7 +212,7 @@ def _frames(scene_name: str, frames: int, seed: int) -> tuple[_Frame, ...]:
         track = scene.hip_track(frames, seed + index, SEGMENT_FRAMES)
     else:
         track = hip_track(scene, frames, seed + index)
-    camera = scene.cameras[0]
+    camera = _study_camera(scene.cameras[0], decimation)
     out = []
     for i, hip in enumerate(track):
         t = i / FRAME_RATE_HZ
@@ -254,14 +272,21 @@ def _check_estimate(
 
 
 def _params(spec: TrialSpec) -> dict[str, Any]:
-    return with_companions(spec.params) if spec.companions else dict(spec.params)
+    """The trial's scene configuration overrides (camera knobs apart, see :func:`_camera`)."""
+    params = split_camera(spec.params)[0]
+    return with_companions(params) if spec.companions else params
+
+
+def _camera(spec: TrialSpec) -> dict[str, Any]:
+    return split_camera(spec.params)[1]
 
 
 def _perceive(spec: TrialSpec, budget_mm: float | None) -> _Tally:
     cfg = SceneConfig().with_overrides(_params(spec)).perception
+    decimation = int(_camera(spec)["decimation"])
     tally = _Tally()
     for scene_name in spec.scenes:
-        frames = _frames(scene_name, spec.frames, spec.seed)
+        frames = _frames(scene_name, spec.frames, spec.seed, decimation)
         pipe = CameraPipeline(cfg, camera=frames[0].depth.camera)
         for i, f in enumerate(frames):
             t0 = time.perf_counter()

@@ -4,7 +4,9 @@ A knob is any parameter of the ``perception``, ``fusion``, ``haptics`` or ``cont
 named as ``--set`` names it (``perception.voxel.voxel_size_m``); its range and kind come from the
 parameter's declaration (:func:`~hapticloud.core.config.param`), so the study refuses exactly
 what a scene file would. Perception knobs are measured on camera frames; the others act in the
-closed loop and are measured by a short deterministic run (:data:`CLOSED_LOOP_TABLES`).
+closed loop and are measured by a short deterministic run (:data:`CLOSED_LOOP_TABLES`). The
+study camera's own settings are knobs too (:data:`CAMERA_KNOBS`: ``camera.decimation``, what a
+scene file sets as ``cameras.<name>.decimation``): they change the frames themselves.
 """
 
 from __future__ import annotations
@@ -12,17 +14,23 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from ...config import ParamInfo, parse_override
 from ...errors import ConfigError
 from ...scene import SceneConfig
+from ...scene.schema import CameraSpec
 
 #: The tables whose parameters are knobs.
 KNOB_TABLES = ("perception", "fusion", "haptics", "controller")
 #: Tables whose knobs only show in the closed loop (not in a camera frame's estimate).
 CLOSED_LOOP_TABLES = ("fusion", "haptics", "controller")
+#: Knobs of the camera the study's frames are rendered with (a scene's ``cameras.<name>.<param>``,
+#: the range of :class:`~hapticloud.core.scene.schema.CameraSpec`); the default is the benchmark
+#: camera's (full resolution), not a scene file's.
+CAMERA_TABLE = "camera"
+CAMERA_DEFAULTS: dict[str, Any] = {"decimation": 1}
 #: A grid larger than this needs ``--yes``.
 MAX_TRIALS_UNASKED = 10_000
 
@@ -56,9 +64,35 @@ class SearchRange:
     integer: bool
 
 
+def _camera_knobs() -> dict[str, ParamInfo]:
+    infos = {p.name: p for p in CameraSpec.params()}
+    return {
+        f"{CAMERA_TABLE}.{name}": replace(
+            infos[name], path=f"{CAMERA_TABLE}.{name}", default=default
+        )
+        for name, default in CAMERA_DEFAULTS.items()
+    }
+
+
+CAMERA_KNOBS: dict[str, ParamInfo] = _camera_knobs()
+
+
 def knob_infos() -> dict[str, ParamInfo]:
     """Every knob by dotted name."""
-    return {p.path: p for p in SceneConfig.params() if p.path.split(".")[0] in KNOB_TABLES}
+    infos = {p.path: p for p in SceneConfig.params() if p.path.split(".")[0] in KNOB_TABLES}
+    return {**infos, **CAMERA_KNOBS}
+
+
+def is_camera(key: str) -> bool:
+    return key.split(".")[0] == CAMERA_TABLE
+
+
+def split_camera(params: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``params`` as (scene configuration overrides, camera settings by parameter name)."""
+    scene = {k: v for k, v in params.items() if not is_camera(k)}
+    camera = {**CAMERA_DEFAULTS}
+    camera.update({k.split(".", 1)[1]: v for k, v in params.items() if is_camera(k)})
+    return scene, camera
 
 
 def knob(key: str) -> ParamInfo:
@@ -93,13 +127,25 @@ def with_companions(params: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def trial_config(params: Mapping[str, Any]) -> SceneConfig:
-    """The default scene configuration with the trial's knobs (and companions) applied."""
-    return SceneConfig().with_overrides(with_companions(params))
+    """The default scene configuration with the trial's knobs (and companions) applied (camera
+    knobs apart: they are the frames', see :func:`split_camera`)."""
+    return SceneConfig().with_overrides(with_companions(split_camera(params)[0]))
+
+
+def _check_camera(key: str, value: Any) -> Any:
+    name = key.split(".", 1)[1]
+    # The camera table's own rules: the same message as a scene file's cameras.<name>.<param>.
+    return CameraSpec().replace_path(name, value).get_path(name)
 
 
 def check_value(key: str, value: Any) -> Any:
     """``value`` coerced to the knob's kind; :class:`ConfigError` if out of range."""
     knob(key)
+    if is_camera(key):
+        try:
+            return _check_camera(key, value)
+        except ConfigError as err:
+            raise ConfigError(f"{CAMERA_TABLE}.{err}") from None
     try:
         return trial_config({key: value}).get_path(key)
     except ConfigError as with_companion:
@@ -206,6 +252,9 @@ def extreme_cases(keys: Iterable[str] | None = None) -> list[tuple[str, dict[str
 
 
 __all__ = [
+    "CAMERA_DEFAULTS",
+    "CAMERA_KNOBS",
+    "CAMERA_TABLE",
     "CLOSED_LOOP_TABLES",
     "COMPANIONS",
     "INTERACTING_PAIRS",
@@ -216,11 +265,13 @@ __all__ = [
     "extreme_cases",
     "grid_size",
     "grid_trials",
+    "is_camera",
     "is_closed_loop",
     "knob",
     "knob_infos",
     "parse_grid",
     "parse_space",
+    "split_camera",
     "trial_config",
     "with_companions",
 ]
