@@ -52,30 +52,10 @@ LOG_FIELDS = (
 )
 # The columns as the tick writes them: those known when the command is out, then the three of
 # the work after it (publishing, fusion, the whole body).
+_WRITTEN_AFTER_SEND = ("publish_us", "fusion_us", "body_us")
 _COLUMNS = (
-    "t",
-    "k",
-    "lateness_us",
-    "tick_us",
-    "master_us",
-    "control_us",
-    "emulator_us",
-    "state",
-    "reaction",
-    "any_fault",
-    "complete",
-    "d_proj_m",
-    "approach_mps",
-    "approach_limit_mps",
-    "poll_us",
-    "inputs_us",
-    "send_us",
-    "ahead_us",
-    "ahead_frames",
-    "space",
-    "publish_us",
-    "fusion_us",
-    "body_us",
+    *(name for name in LOG_FIELDS if name not in _WRITTEN_AFTER_SEND),
+    *_WRITTEN_AFTER_SEND,
 )
 _AFTER_SEND = _COLUMNS.index("publish_us")
 _MAX_EVENTS_PER_SNAPSHOT = 8
