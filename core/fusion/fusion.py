@@ -69,6 +69,16 @@ class CameraAgreement:
 _ONE_CAMERA = CameraAgreement()
 
 
+def _median(values: list[float]) -> float:
+    """``np.median`` of a non-empty list of finite floats, bit for bit (the mean of the two
+    middle values is their sum over 2), without its array overhead."""
+    ordered = sorted(values)
+    half = len(ordered) // 2
+    if len(ordered) % 2:
+        return ordered[half]
+    return (ordered[half - 1] + ordered[half]) / 2
+
+
 @dataclass(frozen=True, slots=True)
 class FusedSurface:
     """The fused surface at sample time ``t`` (s).
@@ -273,73 +283,91 @@ class SurfaceFusion:
 
     def _fit_cameras(self, rows: FloatArray) -> PolyFit | None:
         """The cameras compared, weighted, and the fit of those that agree with the nearest
-        (see the module docstring); ``None`` when they cannot be told apart (too few samples)."""
+        (see the module docstring); ``None`` when they cannot be told apart (too few samples).
+
+        This runs in the control loop's slack (:meth:`prepare` after the torque is sent): what
+        needs no array is done on the rows' Python floats, and every figure that reaches the
+        result is computed by the same operations in the same order as the plain NumPy version
+        it replaced (the fused output did not change by one bit).
+        """
         cfg = self._cfg
-        times = rows[:, 0]
-        newest = len(times) - 1 - int(np.argmax(times[::-1]))
-        names = sorted(set(self._cam))
+        cams = self._cam
+        table = self._rows
+        names = sorted(set(cams))
+        k = len(names)
         cam_index = {name: i for i, name in enumerate(names)}
-        which = np.array([cam_index[c] for c in self._cam])
+        which_list = [cam_index[c] for c in cams]
+        counts = [0] * k
+        newest_of = [-math.inf] * k
+        known: list[list[float]] = [[] for _ in range(k)]  # the residuals reported (> 0)
+        for i, row in zip(which_list, table, strict=True):
+            counts[i] += 1
+            if row[0] > newest_of[i]:
+                newest_of[i] = row[0]
+            if row[7] > 0.0:
+                known[i].append(row[7])
+        # Only cameras with a recent estimate are compared: a camera that stopped seeing the
+        # surface has old rows that weigh little, and it must not answer alone (stale fit).
+        t_newest = max(newest_of)
+        fresh_list = [t_newest - t <= cfg.max_extrapolation_s for t in newest_of]
+        if sum(fresh_list) < 2:
+            return None  # before any array is built: nothing to compare
+        times = rows[:, 0]
+        n = len(times)
+        newest = n - 1 - int(np.argmax(times[::-1]))
+        which = np.array(which_list)
         # One motion for all, one offset per camera: the centroids' height along the newest
         # normal, y = p(tau) + offset[camera]. Each camera's own fit would compare a camera that
         # has one recent sample (a constant) with another's moving fit: motion, not disagreement.
-        ref = rows[newest, 4:7]
-        y = rows[:, 1:4] @ ref
+        y = rows[:, 1:4] @ rows[newest, 4:7]
         age = times[newest] - times
         w = age_weights(age, cfg.weight_half_life_s, cfg.window_s, cfg.weighting)
         degree = min(cfg.max_degree, count_distinct_times(times, cfg.time_resolution_s) - 1)
         tau = -age / cfg.window_s
-        k = len(names)
-        design = np.zeros((len(rows), degree + k))
-        design[np.arange(len(rows)), which] = 1.0  # offsets replace the constant term
+        design = np.zeros((n, degree + k))
+        design[np.arange(n), which] = 1.0  # offsets replace the constant term
         for j in range(1, degree + 1):
             design[:, k + j - 1] = tau**j
         sw = np.sqrt(w)
         coef, _, rank, sv = np.linalg.lstsq(design * sw[:, None], y * sw, rcond=None)
-        free = len(rows) - design.shape[1]
-        if rank < design.shape[1] or free < 1 or not sv[-1] > 1e-9 * sv[0]:
+        if rank < design.shape[1] or n - design.shape[1] < 1 or not sv[-1] > 1e-9 * sv[0]:
             return None
         resid = y - design @ coef
         scatter = np.zeros(k)
         for i in range(k):
-            mine = which == i
-            n_mine = int(mine.sum())
+            n_mine = counts[i]
             # The camera's share of the lost degrees of freedom (its offset, a share of p's).
-            dof = n_mine - 1 - degree * n_mine / len(rows)
+            dof = n_mine - 1 - degree * n_mine / n
             if dof > 0.0:
+                mine = which == i
                 wi, ri = w[mine], resid[mine]
                 scatter[i] = math.sqrt(float(wi @ (ri * ri)) / float(wi.sum()) * n_mine / dof)
-        # Only cameras with a recent estimate are compared: a camera that stopped seeing the
-        # surface has old rows that weigh little, and it must not answer alone (stale fit).
-        newest_of = np.full(k, -math.inf)
-        np.maximum.at(newest_of, which, times)
-        fresh = times[newest] - newest_of <= cfg.max_extrapolation_s
-        if fresh.sum() < 2:
-            return None
         # A camera whose surface is higher along the normal (toward the HIP) is nearer.
-        dist = -coef[:k]
-        dist = dist - dist[fresh].min()
-        near = int(np.flatnonzero(fresh)[np.argmin(dist[fresh])])
+        fresh = np.array(fresh_list)
+        dist_a = -coef[:k]
+        dist_a = dist_a - dist_a[fresh].min()
+        dist = dist_a.tolist()
+        fresh_idx = [i for i in range(k) if fresh_list[i]]
+        # The first of equals, like argmin / argmax (the distances are finite).
+        near = min(fresh_idx, key=dist.__getitem__)
+        far = max(fresh_idx, key=dist.__getitem__)
         limits = np.maximum(
             cfg.disagreement_min_m, cfg.disagreement_sigmas * np.hypot(scatter, scatter[near])
-        )
-        agree = (dist <= limits) | ~fresh
-        residual = []
-        for i in range(k):
-            known = rows[which == i, 7]
-            known = known[known > 0.0]
-            residual.append(float(np.median(known)) if known.size else 0.0)
-        res = np.array(residual)
+        ).tolist()
+        agree = [dist[i] <= limits[i] or not fresh_list[i] for i in range(k)]
+        residual = [_median(values) if values else 0.0 for values in known]
         floor = cfg.residual_floor_m
-        if (res > 0.0).all():
-            w_cam = (floor / np.maximum(res, floor)) ** 2
+        if all(r > 0.0 for r in residual):
+            # (floor / max(r, floor))²: a product, as NumPy squares (no pow()).
+            ratios = [floor / (r if r >= floor else floor) for r in residual]
+            w_cam = [q * q for q in ratios]
         else:  # a camera that does not report its residual: no basis to weigh them apart
-            w_cam = np.ones(k)
-        keep = np.flatnonzero(agree)
-        w_keep = w_cam[keep] / w_cam[keep].sum()
-        far = int(np.flatnonzero(fresh)[np.argmax(dist[fresh])])
-        dropped = tuple(names[i] for i in np.flatnonzero(~agree))
-        spread = float(dist[far])
+            w_cam = [1.0] * k
+        keep = [i for i in range(k) if agree[i]]
+        w_kept = np.array([w_cam[i] for i in keep])
+        w_keep = (w_kept / w_kept.sum()).tolist()  # NumPy's summation order kept
+        dropped = tuple(names[i] for i in range(k) if not agree[i])
+        spread = dist[far]
         if dropped:
             note = (
                 f"cameras disagree by {spread * 1e3:.1f} mm (noise explains "
@@ -348,27 +376,29 @@ class SurfaceFusion:
             )
         else:
             note = "weights " + ", ".join(
-                f"{names[i]} {wk:.2f}" for i, wk in zip(keep.tolist(), w_keep.tolist(), strict=True)
+                f"{names[i]} {wk:.2f}" for i, wk in zip(keep, w_keep, strict=True)
             )
         weights = [0.0] * k
-        for i, wk in zip(keep.tolist(), w_keep.tolist(), strict=True):
+        for i, wk in zip(keep, w_keep, strict=True):
             weights[i] = wk
         self._agreement = CameraAgreement(
             tuple(names),
-            tuple(dist.tolist()),
+            tuple(dist),
             tuple(scatter.tolist()),
             tuple(residual),
             tuple(weights),
             spread,
-            float(limits[far]),
+            limits[far],
             bool(dropped),
             dropped,
             note,
         )
-        if keep.size == k and (w_cam == w_cam[0]).all():
+        if not dropped and w_cam.count(w_cam[0]) == k:
             return None  # all agree, equal trust: the plain fit of every row
-        idx = np.flatnonzero(agree[which])
-        return self._fit_rows(rows[idx], [self._cam[i] for i in idx.tolist()], w_cam[which[idx]])
+        idx = np.flatnonzero(np.array(agree)[which])
+        return self._fit_rows(
+            rows[idx], [cams[i] for i in idx.tolist()], np.array(w_cam)[which[idx]]
+        )
 
     # ----- output ----------------------------------------------------------------------------
     def sample(self, t: float) -> FusedSurface:
