@@ -15,9 +15,10 @@ One :meth:`HapticLoop.tick` does, in this order:
    demand, :meth:`HapticLoop.last_binding`, outside the timed tick).
 
 Everything here is pure (no threads, no I/O, no clock but ``perf_counter`` for telemetry); the
-hardware layer calls the same :meth:`HapticLoop.tick` from its control thread. The refit of the
-fusion's regression is left to the caller (``fusion.prepare()`` right after ``fusion.add``, in the
-camera thread), so a tick only evaluates the cached polynomial.
+hardware layer's control process calls the same :meth:`HapticLoop.tick` from its
+``ControlTick`` (``hardware/control/tick.py``). The refit of the fusion's regression is left to
+the caller (``fusion.prepare()`` right after ``fusion.add``: the simulator between ticks, the
+control process after the tick's command is out), so a tick only evaluates the cached polynomial.
 
 Why ``tau = h`` at level 5 rather than "minimise joint accelerations": without a force sensor
 they are the same task (``M qdd + h = tau`` and ``qdd = 0``). With the handle's force sensor the
