@@ -31,7 +31,15 @@ from ..perception.estimate import SurfaceEstimate
 from ..validation import as_finite_scalar
 from .config import FusionConfig
 from .follower import NormalFollower, PidGains, PointFollower
-from .regression import PolyFit, Vec3, age_weights, count_distinct_times, fit_window
+from .regression import (
+    PolyFit,
+    Vec3,
+    age_weights,
+    count_distinct_times,
+    fit_weighted,
+    fit_window,
+    newest_index,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -314,7 +322,7 @@ class SurfaceFusion:
             return None  # before any array is built: nothing to compare
         times = rows[:, 0]
         n = len(times)
-        newest = n - 1 - int(np.argmax(times[::-1]))
+        newest = newest_index(times)
         which = np.array(which_list)
         # One motion for all, one offset per camera: the centroids' height along the newest
         # normal, y = p(tau) + offset[camera]. Each camera's own fit would compare a camera that
@@ -322,12 +330,15 @@ class SurfaceFusion:
         y = rows[:, 1:4] @ rows[newest, 4:7]
         age = times[newest] - times
         w = age_weights(age, cfg.weight_half_life_s, cfg.window_s, cfg.weighting)
-        degree = min(cfg.max_degree, count_distinct_times(times, cfg.time_resolution_s) - 1)
-        tau = -age / cfg.window_s
+        n_times = count_distinct_times(times, cfg.time_resolution_s)
+        degree = min(cfg.max_degree, n_times - 1)
         design = np.zeros((n, degree + k))
-        design[np.arange(n), which] = 1.0  # offsets replace the constant term
-        for j in range(1, degree + 1):
-            design[:, k + j - 1] = tau**j
+        design[:, :k] = np.eye(k)[which]  # offsets replace the constant term
+        if degree > 0:
+            tau = -age / cfg.window_s
+            design[:, k] = tau
+            for j in range(2, degree + 1):
+                design[:, k + j - 1] = tau**j
         sw = np.sqrt(w)
         coef, _, rank, sv = np.linalg.lstsq(design * sw[:, None], y * sw, rcond=None)
         if rank < design.shape[1] or n - design.shape[1] < 1 or not sv[-1] > 1e-9 * sv[0]:
@@ -393,11 +404,25 @@ class SurfaceFusion:
             dropped,
             note,
         )
-        if not dropped and w_cam.count(w_cam[0]) == k:
+        if dropped:
+            idx = np.flatnonzero(np.array(agree)[which])
+            return self._fit_rows(
+                rows[idx], [cams[i] for i in idx.tolist()], np.array(w_cam)[which[idx]]
+            )
+        if w_cam.count(w_cam[0]) == k:
             return None  # all agree, equal trust: the plain fit of every row
-        idx = np.flatnonzero(np.array(agree)[which])
-        return self._fit_rows(
-            rows[idx], [cams[i] for i in idx.tolist()], np.array(w_cam)[which[idx]]
+        # Every row, so the window's age weights and distinct times computed above serve.
+        return fit_weighted(
+            times,
+            rows[:, 1:4],
+            rows[:, 4:7],
+            cams,
+            newest,
+            w * np.array(w_cam)[which],
+            n_times,
+            window_s=cfg.window_s,
+            max_degree=cfg.max_degree,
+            normal_max_degree=cfg.normal_max_degree,
         )
 
     # ----- output ----------------------------------------------------------------------------

@@ -185,16 +185,53 @@ def fit_window(
     ``sample_weights (N,)`` (positive) multiply the age weights (a camera's trust); ``None``
     weighs by age alone.
     """
+    newest = newest_index(times)
+    w = age_weights(times[newest] - times, half_life_s, window_s, weighting)
+    if sample_weights is not None:
+        w = w * sample_weights
+    return fit_weighted(
+        times,
+        centroids,
+        normals,
+        cameras,
+        newest,
+        w,
+        count_distinct_times(times, time_resolution_s),
+        window_s=window_s,
+        max_degree=max_degree,
+        normal_max_degree=normal_max_degree,
+    )
+
+
+def newest_index(times: FloatArray) -> int:
+    """Index of the newest sample: the last one given among equal newest times."""
+    return int(times.shape[0]) - 1 - int(np.argmax(times[::-1]))
+
+
+def fit_weighted(
+    times: FloatArray,
+    centroids: FloatArray,
+    normals: FloatArray,
+    cameras: Sequence[str],
+    newest: int,
+    weights: FloatArray,
+    n_times: int,
+    *,
+    window_s: float,
+    max_degree: int = 2,
+    normal_max_degree: int = 2,
+) -> PolyFit:
+    """:func:`fit_window` with its weights and counts already known.
+
+    ``newest`` is :func:`newest_index` of ``times``, ``weights (N,)`` the age weights (times
+    any sample weights) and ``n_times`` :func:`count_distinct_times`: a caller that has them
+    (the fusion's camera comparison) does not compute them twice.
+    """
     n = int(times.shape[0])
-    newest = n - 1 - int(np.argmax(times[::-1]))  # last of the equal newest times
     t_ref = float(times[newest])
     ref = tuple(normals[newest].tolist())
     age = t_ref - times
-    w = age_weights(age, half_life_s, window_s, weighting)
-    if sample_weights is not None:
-        w = w * sample_weights
-    sw = np.sqrt(w)  # sqrt(W) A: W-norm LS
-    n_times = count_distinct_times(times, time_resolution_s)
+    sw = np.sqrt(weights)  # sqrt(W) A: W-norm LS
     # Fit offsets from the newest centroid: large world coordinates lose no digits in the solve.
     origin = centroids[newest]
     Yw = np.empty((n, 6))
