@@ -79,7 +79,7 @@ class Session:
         The emulated arm's dynamics factory; ``"auto"``: :func:`default_dynamics`.
     emulator
         Where the six emulated drives run: ``"stepped"`` (default: in the control tick, on one
-        simulation clock with the loop, :class:`~hapticloud.hardware.control.process.SimClock`)
+        simulation clock with the loop, :class:`~hapticloud.hardware.control.child.SimClock`)
         or ``"process"`` (their own process on wall time, like real drives).
     enable_when_ready
         Enable once, the first time the session reports READY (``hapticloud app --enable``: the

@@ -108,7 +108,7 @@ def record_ticks(sink: RecordSink, record: Any, every: int = CONTROL_EVERY_TICKS
 
 
 def snapshot_state(snap: Any) -> dict[str, Any]:
-    """A :class:`~hapticloud.hardware.control.process.ControlSnapshot` as a control state."""
+    """A :class:`~hapticloud.hardware.control.messages.ControlSnapshot` as a control state."""
     return {
         "t": float(snap.t),
         "hip": list(snap.hip_m),
