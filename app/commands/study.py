@@ -78,6 +78,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="study scenes (default: all; --extremes: " + ",".join(EXTREME_SCENES) + ")",
     )
     where.add_argument(
+        "--recording",
+        action="append",
+        default=[],
+        metavar="FILE.mcap",
+        help="also (without --scenes: only) re-run perception on this recording's frames "
+        "(repeatable; --frames per camera), scored against its truth if simulated, else against "
+        "its recorded estimates",
+    )
+    where.add_argument(
         "--frames",
         type=positive_int,
         default=DEFAULT_FRAMES,
@@ -128,6 +137,8 @@ class _Request:
 def _scenes(args: argparse.Namespace) -> tuple[str, ...]:
     from hapticloud.core.studies.trade.evaluate import check_scenes, study_scenes
 
+    if args.scenes is None and args.recording:
+        return ()
     if args.scenes is None:
         return EXTREME_SCENES if args.extremes else tuple(study_scenes())
     return check_scenes([s.strip() for s in args.scenes.split(",") if s.strip()])
@@ -145,7 +156,10 @@ def _request(args: argparse.Namespace) -> _Request:
     if args.search and not args.space:
         raise ConfigError("--search nsga2: give the ranges with --space KEY=LO:HI[:log]")
     loop_s = LOOP_DURATION_S if args.loop_duration is None else args.loop_duration
-    template = TrialSpec({}, _scenes(args), args.frames, loop_duration_s=loop_s)
+    recordings = _recordings(args)
+    template = TrialSpec(
+        {}, _scenes(args), args.frames, loop_duration_s=loop_s, recordings=recordings
+    )
     if args.extremes:
         chosen = None if args.knobs is None else [s.strip() for s in args.knobs.split(",")]
         cases = k.extreme_cases(chosen)
@@ -169,6 +183,19 @@ def _request(args: argparse.Namespace) -> _Request:
         trials.append(default)  # the shipped default is always measured beside the grid
     specs = [dataclasses.replace(template, params=p) for p in trials]
     return _Request(specs, keys, trials.index(default), [], template, [])
+
+
+def _recordings(args: argparse.Namespace) -> tuple[str, ...]:
+    if not args.recording:
+        return ()
+    from hapticloud.hardware.study.recording import recording_id
+
+    turned = [g.partition("=")[0].strip() for g in args.grid] + [
+        s.partition("=")[0].strip() for s in args.space
+    ]
+    if "camera.decimation" in turned:
+        raise ConfigError("--recording: camera.decimation cannot re-render recorded frames")
+    return tuple(dict.fromkeys(recording_id(path) for path in args.recording))
 
 
 # ----- running -----------------------------------------------------------------------------------
@@ -265,6 +292,7 @@ def _command(args: argparse.Namespace) -> str:
         parts += [f"--population {args.population} --seed {args.seed}"]
     if args.scenes:
         parts.append(f"--scenes {args.scenes}")
+    parts += [f"--recording {path}" for path in args.recording]
     parts.append(f"--frames {args.frames}")
     return " ".join(parts)
 
@@ -291,15 +319,14 @@ def _report(
             default_index = sum(r is not None for r in outcome.results[:default_index])
     front = fr.pareto_front(trials)
     presets = fr.pick_presets(trials, front, default_index)
-    t = request.template
     print(
         f"{len(trials)} distinct trials ({outcome.cached} from the cache, {outcome.measured} "
-        f"measured) in "
-        f"{wall_s:.1f} s on {workers} workers; {t.frames} frames per scene x {len(t.scenes)} "
-        f"scenes = {t.frames * len(t.scenes)} estimates per trial; front over "
-        f"{', '.join(fr.front_objectives(trials))}: {len(front)} non-dominated (*), "
+        f"measured) in {wall_s:.1f} s on {workers} workers; {_sources(request, trials)}; front "
+        f"over {', '.join(fr.front_objectives(trials))}: {len(front)} non-dominated (*), "
         f"{sum(x.unsafe for x in trials)} unsafe (!)"
     )
+    for rec, ref in _references(request).items():
+        print(f"recording {rec.split('#')[0]}: scored against {ref}")
     print(fr.format_table(trials, front, request.keys, presets))
     if default_index is not None:
         print(f"shipped default: trial with {dict(trials[default_index].params)}")
@@ -318,6 +345,27 @@ def _report(
     if args.write_presets:
         _write_presets(Path(args.write_presets), trials, presets, request, command)
     return 0
+
+
+def _sources(request: _Request, trials: Sequence[Any]) -> str:
+    """What each trial ran on: frames per scene, recordings, estimates per trial."""
+    t = request.template
+    parts = []
+    if t.scenes:
+        parts.append(f"{t.frames} frames per scene x {len(t.scenes)} scenes")
+    if t.recordings:
+        parts.append(f"the first {t.frames} frames per camera of {len(t.recordings)} recording(s)")
+    used = max((x.estimates for x in trials), default=0)
+    return " + ".join(parts) + f" = {used} estimates per trial"
+
+
+def _references(request: _Request) -> dict[str, str]:
+    """What each recording's frames are scored against, by recording."""
+    if not request.template.recordings:
+        return {}
+    from hapticloud.hardware.study.recording import reference
+
+    return {rec: reference(rec) for rec in request.template.recordings}
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -346,6 +394,10 @@ def _write_json(
         "command": command,
         "code_version": code_version(),
         "scenes": list(request.template.scenes),
+        "recordings": [
+            {"path": rec.split("#")[0], "id": rec, "scored_against": ref}
+            for rec, ref in _references(request).items()
+        ],
         "frames_per_scene": request.template.frames,
         "wall_s": round(wall_s, 1),
         "trials": rows,
@@ -417,8 +469,10 @@ def _report_extremes(request: _Request, outcome: Any, wall_s: float) -> int:
     done = len(outcome.finished)
     print(
         f"extremes: {done} cases in {wall_s:.1f} s ({len(refused)} refused with their reason), "
-        f"{len(failing)} failing"
+        f"{len(failing)} failing; {_sources(request, outcome.finished)}"
     )
+    for rec, ref in _references(request).items():
+        print(f"recording {rec.split('#')[0]}: scored against {ref}")
     for line in refused:
         print(line)
     for label, problems in failing:

@@ -26,7 +26,12 @@ def run_trial(spec: TrialSpec, budget_mm: float | None = None) -> TrialResult:
         settle_numerics(1)
         _SETTLED = True
     try:
-        result = evaluate(spec, budget_mm=budget_mm)
+        if spec.recordings:
+            from .recording import recorded_frames
+
+            result = evaluate(spec, budget_mm=budget_mm, recorded_frames=recorded_frames)
+        else:
+            result = evaluate(spec, budget_mm=budget_mm)
     except Exception as err:  # a trial's crash is its finding, not the study's end
         text = f"exception {type(err).__name__}: {err}".splitlines()[0]
         nan = dict.fromkeys(OBJECTIVES, float("nan"))

@@ -52,6 +52,8 @@ def _free_port() -> int:
         (["--search", "nsga2"], "--space"),
         ([], "give one of --grid"),
         (["--grid", f"{VOXEL}=0.004", "--scenes", "moon"], "unknown scene"),
+        (["--grid", f"{VOXEL}=0.004", "--recording", "/nonexistent/x.mcap"], "x.mcap"),
+        (["--grid", "camera.decimation=0,2"], "camera.decimation = 0: must be in [1, 16]"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(argv, needle, capsys, no_cluster) -> None:
@@ -105,3 +107,67 @@ def test_the_app_offers_the_shipped_presets(qtbot) -> None:
     actions["fast"].trigger()
     shipped = tomllib.loads(asset_path("presets", "fast.toml").read_text())
     assert panel.config == LiveConfig.from_dict(shipped)
+
+
+def test_decimation_with_a_recording_is_refused(tmp_path: Path, capsys, no_cluster) -> None:
+    from hapticloud.hardware.recording.synth import synthesize
+
+    rec = synthesize(tmp_path / "wall.mcap", 0.5)
+    argv = ["study", "--grid", "camera.decimation=1,2", "--recording", str(rec)]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "camera.decimation cannot re-render recorded frames" in err[0]
+
+
+def test_a_recording_without_truth_is_scored_against_its_estimates(tmp_path: Path, capsys) -> None:
+    from hapticloud.hardware.recording.synth import synthesize
+
+    rec = synthesize(tmp_path / "wall.mcap", 1.0)
+    out = tmp_path / "r.json"
+    argv = ["study", "--grid", f"{VOXEL}=0.0035,0.007", "--recording", str(rec), "--frames", "4"]
+    argv += ["--workers", "1", "--cache", str(tmp_path / "cache"), "--json", str(out)]
+    assert cli.main(argv) == 0
+    text = capsys.readouterr().out
+    assert "the first 4 frames per camera of 1 recording(s) = 8 estimates per trial" in text
+    assert "scored against the recorded estimates" in text
+    data = json.loads(out.read_text())
+    assert data["recordings"][0]["path"] == str(rec.resolve())
+    assert all(t["estimates"] == 8 for t in data["trials"])
+    # The synthetic recording's estimates are the exact closest points: the default agrees.
+    default = next(t for t in data["trials"] if t["default"])
+    assert default["objectives"]["centroid_mm_p90"] < 0.01
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rec") / "demo.mcap"
+    assert cli.main(["run", "demo", "--duration", "0.5", "--quiet", "--record", str(path)]) == 0
+    return path
+
+
+def test_a_simulated_recording_is_scored_against_the_truth(demo_run: Path) -> None:
+    from hapticloud.core.scene.loader import parse_scene
+    from hapticloud.core.studies.trade.evaluate import TrialSpec, evaluate
+    from hapticloud.hardware.recording.reader import Recording
+    from hapticloud.hardware.study.recording import recorded_frames, recording_id, reference
+
+    rec_id = recording_id(demo_run)
+    assert "the simulator's truth (scene demo" in reference(rec_id)
+    with Recording.open(demo_run) as rec:
+        margins = {m.log_time_s: m.data["true_margin_m"] for m in rec.messages(["/control/state"])}
+        scene = parse_scene(tomllib.loads(rec.metadata["hapticloud.scene"]["toml"]))
+    r_hip = scene.config.robot.hip_radius_m
+    streams = recorded_frames(rec_id, 6)
+    assert streams and all(len(frames) == 6 for frames in streams.values())
+    checked = 0
+    for frames in streams.values():
+        for f in frames:
+            assert f.true_point is not None
+            if f.t in margins:  # the run's own truth at the frame's tick
+                checked += 1
+                assert f.true_distance_m - r_hip == pytest.approx(margins[f.t], abs=1e-9)
+    assert checked
+    result = evaluate(TrialSpec({}, (), 6, recordings=(rec_id,)), recorded_frames=recorded_frames)
+    assert result.estimates == 6 * len(streams) and result.problems == ()
+    # The HIP starts 10.5 cm from the head's surface, in view: estimates close to the truth.
+    assert result.objectives["centroid_mm_median"] < 2.0

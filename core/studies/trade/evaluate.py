@@ -7,6 +7,11 @@ with closed-loop knobs (fusion, haptics, controller) also runs a short determini
 of a shipped scene and reports its true minimum margin and how far the fused surface tracked the
 true one. Everything but the latency is deterministic: the same trial gives the same figures on
 any machine.
+
+A trial may also run on recordings (``TrialSpec.recordings``): each camera's recorded frames go,
+in order, through a pipeline of their own with the trial's knobs, and are scored against the
+reference the recording's reader gives each frame (:class:`StudyFrame`: the truth of a simulated
+scene, or the estimate recorded for the frame; ``hapticloud.hardware.study.recording``).
 """
 
 from __future__ import annotations
@@ -14,7 +19,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -74,6 +79,9 @@ class TrialSpec:
     #: Raise the knobs' companions with them (:data:`~.knobs.COMPANIONS`); the extremes do not:
     #: a knob alone past its companion is a config the rules refuse, and that is the finding.
     companions: bool = True
+    #: Recordings measured beside the scenes, each named by its reader's identity of the file
+    #: (path and content digest, so the cache knows a changed file); ``frames`` per camera.
+    recordings: tuple[str, ...] = ()
 
     @property
     def closed_loop(self) -> bool:
@@ -88,6 +96,8 @@ class TrialSpec:
         }
         if not self.companions:
             out["companions"] = False
+        if self.recordings:
+            out["recordings"] = list(self.recordings)
         if self.closed_loop:
             out["loop"] = {"scene": self.loop_scene, "duration_s": self.loop_duration_s}
         return out
@@ -176,14 +186,22 @@ def check_scenes(names: Sequence[str]) -> tuple[str, ...]:
 
 
 @dataclass(frozen=True)
-class _Frame:
+class StudyFrame:
+    """One depth frame a trial's pipeline runs on, and the reference its estimate is scored
+    against (``true_point`` ``None``: no reference for this frame, only its latency counts)."""
+
     t: float
     hip: FloatArray
     depth: Any  # DepthFrame
     occluders: tuple[Any, ...]
-    true_point: FloatArray
-    true_normal: FloatArray
+    true_point: FloatArray | None
+    true_normal: FloatArray | None
     true_distance_m: float
+
+
+#: ``(recording, frames per camera) -> {camera: frames}``: how a worker reads a recording's
+#: frames (the hardware layer's reader; core reads no file).
+RecordedFrames = Callable[[str, int], Mapping[str, Sequence[StudyFrame]]]
 
 
 def _study_camera(camera: SimDepthCamera, decimation: int) -> SimDepthCamera:
@@ -204,7 +222,7 @@ def _study_camera(camera: SimDepthCamera, decimation: int) -> SimDepthCamera:
 # Rendering is 3-4x the cost of processing a frame and the same for every trial: each worker
 # renders a scene's frames once (about 1.6 MB a frame; the default study holds ~200 frames).
 @functools.lru_cache(maxsize=16)
-def _frames(scene_name: str, frames: int, seed: int, decimation: int = 1) -> tuple[_Frame, ...]:
+def _frames(scene_name: str, frames: int, seed: int, decimation: int = 1) -> tuple[StudyFrame, ...]:
     names = list(study_scenes())
     scene = study_scenes()[scene_name]
     index = names.index(scene_name)
@@ -219,7 +237,7 @@ def _frames(scene_name: str, frames: int, seed: int, decimation: int = 1) -> tup
         occluders = tuple(scene.occluders(hip, t))
         truth = scene.world.ground_truth(hip, t)
         out.append(
-            _Frame(
+            StudyFrame(
                 t,
                 np.asarray(hip, dtype=np.float64),
                 camera.render(scene.world, t, occluders=occluders),
@@ -281,18 +299,45 @@ def _camera(spec: TrialSpec) -> dict[str, Any]:
     return split_camera(spec.params)[1]
 
 
-def _perceive(spec: TrialSpec, budget_mm: float | None) -> _Tally:
-    cfg = SceneConfig().with_overrides(_params(spec)).perception
+def _streams(
+    spec: TrialSpec, recorded_frames: RecordedFrames | None
+) -> list[tuple[str, Sequence[StudyFrame]]]:
+    """(label, frames) of every camera stream of the trial: the scenes', then the recordings'."""
     decimation = int(_camera(spec)["decimation"])
+    out: list[tuple[str, Sequence[StudyFrame]]] = [
+        (name, _frames(name, spec.frames, spec.seed, decimation)) for name in spec.scenes
+    ]
+    if spec.recordings and recorded_frames is None:
+        raise ConfigError("recordings: this worker was given no reader for them")
+    for rec in spec.recordings:
+        assert recorded_frames is not None
+        for camera, frames in recorded_frames(rec, spec.frames).items():
+            out.append((f"{rec.split('#')[0]} {camera}", frames))
+    return out
+
+
+def _perceive(
+    spec: TrialSpec, budget_mm: float | None, recorded_frames: RecordedFrames | None = None
+) -> _Tally:
+    cfg = SceneConfig().with_overrides(_params(spec)).perception
     tally = _Tally()
-    for scene_name in spec.scenes:
-        frames = _frames(scene_name, spec.frames, spec.seed, decimation)
+    for scene_name, frames in _streams(spec, recorded_frames):
+        if not frames:
+            continue
         pipe = CameraPipeline(cfg, camera=frames[0].depth.camera)
         for i, f in enumerate(frames):
             t0 = time.perf_counter()
             est = pipe.process_depth(f.depth, f.hip, exclude=f.occluders)
             tally.latency_ms.append((time.perf_counter() - t0) * 1e3)
             tally.estimates += 1
+            if f.true_point is None or f.true_normal is None:
+                # No reference: the estimate is only checked for being finite, or invalid with
+                # its reason.
+                centroid = est.centroid if est.valid else (0.0, 0.0, 0.0)
+                problem = _check_estimate(est, tuple(float(x) for x in centroid), None)
+                if problem:
+                    tally.problems.append(f"{scene_name} frame {i}: {problem}")
+                continue
             near = f.true_distance_m <= NEAR_M
             tally.near += near
             errors = (float("nan"),) * 3
@@ -326,22 +371,30 @@ def _closed_loop(spec: TrialSpec) -> dict[str, float]:
     }
 
 
-def evaluate(spec: TrialSpec, *, budget_mm: float | None = None) -> TrialResult:
+def evaluate(
+    spec: TrialSpec,
+    *,
+    budget_mm: float | None = None,
+    recorded_frames: RecordedFrames | None = None,
+) -> TrialResult:
     """Measure one trial (see the module docstring).
 
     ``budget_mm``: when given, a valid estimate that reports the surface farther than it is by
     more (d_proj error on the unsafe side; nearer is conservative) is a problem (the extremes'
     check). A config the parameters' rules refuse, or the closed-loop scene refuses to build
-    with, is reported with its reason, not raised.
+    with, is reported with its reason, not raised. ``recorded_frames`` reads the frames of
+    ``spec.recordings``.
     """
     t0 = time.perf_counter()
     try:
         SceneConfig().with_overrides(_params(spec))
+        if spec.recordings and _camera(spec)["decimation"] != 1:
+            raise ConfigError("camera.decimation: a recording's frames cannot be rendered again")
     except ConfigError as err:
         return TrialResult(
             spec.params, dict.fromkeys(OBJECTIVES, float("nan")), True, (f"refused: {err}",)
         )
-    tally = _perceive(spec, budget_mm)
+    tally = _perceive(spec, budget_mm, recorded_frames)
     lat_med, lat_p90 = _median_p90(tally.latency_ms)
     c_med, c_p90 = _median_p90(tally.centroid_mm)
     objectives = {
@@ -393,6 +446,8 @@ __all__ = [
     "PERCEPTION_OBJECTIVES",
     "SEED",
     "UNSAFE_MARGIN_MM",
+    "RecordedFrames",
+    "StudyFrame",
     "TrialResult",
     "TrialSpec",
     "check_scenes",
