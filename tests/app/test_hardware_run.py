@@ -84,7 +84,13 @@ def _check_session(rep: dict) -> None:
     est = rep["estimates"]
     assert sum(est["sent"].values()) > 20
     assert sum(est["admitted"].values()) > 0
-    assert est["fused_valid_ever"]
+    # Said in full when it fails: a session that faulted (a stalled machine) never gets there.
+    assert est["fused_valid_ever"], {
+        "transitions": rep["session"]["transitions"],
+        "reactions": rep["session"].get("reactions"),
+        "truth": rep["truth"],
+        "admitted": est["admitted"],
+    }
     assert rep["truth"]["samples"] > 100
     assert rep["truth"]["min_margin_m"] is not None
     assert rep["control"]["tick_us"]["p99"] is not None
