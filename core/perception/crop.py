@@ -12,6 +12,8 @@ Two entry points share the exact tests:
 
 Kept points are those with ``|p - hip| < workspace_radius_m`` that lie outside every exclusion
 primitive grown by ``exclude_margin_m``. Rows with NaN or inf are dropped, never propagated.
+What the margin removes is unseen space, not robot: :func:`hidden_length` measures how much of a
+segment lies in it (the pipeline refuses an estimate that relies on too much of it).
 """
 
 from __future__ import annotations
