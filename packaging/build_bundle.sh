@@ -16,6 +16,10 @@ venv=build/bundle-venv
 "$venv/bin/python" -m pip install -q -c requirements.lock ".[app,hardware,record]" \
   "pyinstaller>=6.10,<7"
 # The same version number does not make pip reinstall: the checkout as it is now, always.
+# setuptools copies a module into build/lib only when the source is newer than the copy there, so
+# a checkout of older files (git checkout, an unpacked archive) would ship stale modules: start
+# from an empty build/lib.
+rm -rf build/lib build/bdist.*
 "$venv/bin/python" -m pip install -q --no-deps --force-reinstall .
 
 rm -rf dist/hapticloud
