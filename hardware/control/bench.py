@@ -35,6 +35,8 @@ from hapticloud.core.studies.stats import summary
 
 from .process import ControlProcess
 
+#: The loop's targets: tick p99, and misses per 10k beyond the null loop's of the same run
+#: (``--baseline``; without it, beyond none).
 TARGETS = {"tick_us_p99": 400.0, "misses_per_10k": 1.0}
 
 
@@ -194,12 +196,19 @@ def run_bench(
         "python": platform.python_version(),
         "machine": platform.machine(),
     }
-    out["pass"] = bool(
+    return out | _judge(out, floor)
+
+
+def _judge(out: Mapping[str, Any], floor: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The misses per 10k the loop may have (the target beyond what the null loop had in the
+    same run, the machine's share; the target alone without a null loop) and whether it passed."""
+    allowed = TARGETS["misses_per_10k"] + (float(floor["misses_per_10k"]) if floor else 0.0)
+    passed = bool(
         out["ticks"]
         and out["tick_us_p99"] <= TARGETS["tick_us_p99"]
-        and out["misses_per_10k"] <= TARGETS["misses_per_10k"]
+        and out["misses_per_10k"] <= allowed
     )
-    return out
+    return {"allowed_misses_per_10k": allowed, "pass": passed}
 
 
 def _floor(
@@ -409,7 +418,8 @@ def main(
         f"{res['sched_note']}): tick median {res['tick_us_median']} us, p99 "
         f"{res['tick_us_p99']} us, max {res['tick_us_max']} us; misses "
         f"{res['misses_per_10k']} per 10,000; targets p99 <= {TARGETS['tick_us_p99']:.0f} us, "
-        f"<= {TARGETS['misses_per_10k']:.0f} miss per 10,000: "
+        f"<= {res['allowed_misses_per_10k']:.2f} misses per 10,000 (1 beyond the null loop's "
+        "when it ran): "
         f"{'pass' if res['pass'] else 'FAIL'}\n"
     )
     stalls = res["machine_stalls"]
