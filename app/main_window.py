@@ -109,6 +109,28 @@ def add_dock(
     window.addDockWidget(area, dock)
 
 
+def lay_out_docks(
+    window: QtWidgets.QMainWindow,
+    right: tuple[tuple[str, QtWidgets.QWidget, int], tuple[str, QtWidgets.QWidget, int]],
+    bottom: tuple[str, QtWidgets.QWidget, int],
+    right_width_px: int = 420,
+) -> None:
+    """The windows' dock layout: two panels stacked on the right (title, widget, height in px),
+    ``right_width_px`` wide, and the plots along the bottom (title, widget, height)."""
+    right_area = QtCore.Qt.DockWidgetArea.RightDockWidgetArea
+    for title, widget, _ in right:
+        add_dock(window, title, widget, right_area)
+    add_dock(window, bottom[0], bottom[1], QtCore.Qt.DockWidgetArea.BottomDockWidgetArea)
+
+    def dock(title: str) -> QtWidgets.QDockWidget:
+        return window.findChild(QtWidgets.QDockWidget, title)
+
+    vertical, horizontal = QtCore.Qt.Orientation.Vertical, QtCore.Qt.Orientation.Horizontal
+    window.resizeDocks([dock(right[1][0])], [right_width_px], horizontal)
+    window.resizeDocks([dock(title) for title, _, _ in right], [h for _, _, h in right], vertical)
+    window.resizeDocks([dock(bottom[0])], [bottom[2]], vertical)
+
+
 class ViewControls(QtWidgets.QToolBar):
     """Colour mode, layers, camera presets and the legend of the 3D view."""
 
@@ -224,26 +246,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.panel.refused.connect(self._show_refusal)
         self.plots = LivePlots(self)
         self.session_panel = SessionPanel(self)
-        self._dock("Session", self.session_panel, QtCore.Qt.DockWidgetArea.RightDockWidgetArea)
-        self._dock("Parameters", self.panel, QtCore.Qt.DockWidgetArea.RightDockWidgetArea)
-        self._dock("Live plots", self.plots, QtCore.Qt.DockWidgetArea.BottomDockWidgetArea)
-        self.resizeDocks(
-            [self.findChild(QtWidgets.QDockWidget, "Parameters")],
-            [420],
-            QtCore.Qt.Orientation.Horizontal,
-        )
-        self.resizeDocks(
-            [
-                self.findChild(QtWidgets.QDockWidget, "Session"),
-                self.findChild(QtWidgets.QDockWidget, "Parameters"),
-            ],
-            [250, 480],
-            QtCore.Qt.Orientation.Vertical,
-        )
-        self.resizeDocks(
-            [self.findChild(QtWidgets.QDockWidget, "Live plots")],
-            [210],
-            QtCore.Qt.Orientation.Vertical,
+        lay_out_docks(
+            self,
+            (("Session", self.session_panel, 250), ("Parameters", self.panel, 480)),
+            ("Live plots", self.plots, 210),
         )
 
         self.status = StatusPanel(self.statusBar())
@@ -283,9 +289,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.timer.start(POLL_MS)
 
     # ----- layout -------------------------------------------------------------------------------
-    def _dock(self, title: str, widget: QtWidgets.QWidget, area: QtCore.Qt.DockWidgetArea) -> None:
-        add_dock(self, title, widget, area)
-
     def _build_toolbar(self) -> None:
         bar = self.addToolBar("Session")
         bar.setObjectName("Session")

@@ -29,7 +29,7 @@ from hapticloud.hardware.live.contract import LiveConfig, Snapshot
 from PyQt6 import QtCore, QtGui, QtWidgets
 
 from .live_plots import LivePlots
-from .main_window import PLOT_PERIOD_S, POLL_MS, ViewControls, add_dock
+from .main_window import PLOT_PERIOD_S, POLL_MS, ViewControls, lay_out_docks
 from .param_panel import ParamPanel
 from .recording_source import RecordingSource
 from .scene_view import SceneView
@@ -211,24 +211,10 @@ class RecordingWindow(QtWidgets.QMainWindow):
         self.plots = LivePlots(self)
         self.recording_panel = RecordingPanel(source, self)
         self.recording_panel.rerun_button.clicked.connect(self.start_rerun)
-        self._dock("Recording", self.recording_panel, QtCore.Qt.DockWidgetArea.RightDockWidgetArea)
-        self._dock("Parameters", self.panel, QtCore.Qt.DockWidgetArea.RightDockWidgetArea)
-        self._dock("Plots", self.plots, QtCore.Qt.DockWidgetArea.BottomDockWidgetArea)
-        self.resizeDocks(
-            [self.findChild(QtWidgets.QDockWidget, "Parameters")],
-            [420],
-            QtCore.Qt.Orientation.Horizontal,
-        )
-        self.resizeDocks(
-            [
-                self.findChild(QtWidgets.QDockWidget, "Recording"),
-                self.findChild(QtWidgets.QDockWidget, "Parameters"),
-            ],
-            [370, 360],
-            QtCore.Qt.Orientation.Vertical,
-        )
-        self.resizeDocks(
-            [self.findChild(QtWidgets.QDockWidget, "Plots")], [190], QtCore.Qt.Orientation.Vertical
+        lay_out_docks(
+            self,
+            (("Recording", self.recording_panel, 370), ("Parameters", self.panel, 360)),
+            ("Plots", self.plots, 190),
         )
         self.status = StatusPanel(self.statusBar())
         self._build_toolbar()
@@ -253,9 +239,6 @@ class RecordingWindow(QtWidgets.QMainWindow):
         self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
         self.timer.timeout.connect(self.poll)
         self.timer.start(POLL_MS)
-
-    def _dock(self, title: str, widget: QtWidgets.QWidget, area: QtCore.Qt.DockWidgetArea) -> None:
-        add_dock(self, title, widget, area)
 
     def _build_toolbar(self) -> None:
         bar = self.addToolBar("Recording")
