@@ -41,9 +41,8 @@ from typing import Any
 
 from ..drives.faults import FAULT_METHODS
 from ..session.states import SessionState
-from .child import ChildEnds, SimClock, child_main
+from .child import ChildEnds, child_main
 from .messages import (
-    ESTIMATE_WIRE_FIELDS,
     ChildFailed,
     Configure,
     ControlConfig,
@@ -56,28 +55,18 @@ from .messages import (
     Reset,
     Result,
     Stop,
-    estimate_from_dict,
-    estimate_from_wire,
-    estimate_to_dict,
-    estimate_to_wire,
     send_camera_frame,
     send_estimate,
 )
 
 __all__ = [
     "EMULATOR_MODES",
-    "ESTIMATE_WIRE_FIELDS",
     "FAULT_METHODS",
     "PERIOD_S",
     "STATE_CODES",
     "ControlConfig",
     "ControlProcess",
     "ControlSnapshot",
-    "SimClock",
-    "estimate_from_dict",
-    "estimate_from_wire",
-    "estimate_to_dict",
-    "estimate_to_wire",
     "send_camera_frame",
     "send_estimate",
 ]

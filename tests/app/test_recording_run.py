@@ -12,7 +12,7 @@ from hapticloud.app.cli import main
 from hapticloud.core.geometry import Box, Capsule, Sphere
 from hapticloud.core.perception import SurfaceEstimate
 from hapticloud.core.recording import primitive_from_dict, primitive_to_dict
-from hapticloud.hardware.control.process import (
+from hapticloud.hardware.control.messages import (
     estimate_from_dict,
     estimate_from_wire,
     estimate_to_dict,
