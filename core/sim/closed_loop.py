@@ -145,10 +145,11 @@ def build_plant(
     *,
     held: bool,
     substeps: int | None = None,
+    frozen_dynamics: bool = False,
 ) -> ExoPlant:
     """The exoskeleton's plant as the scene declares it: the control period, ``loop.substeps``
     (unless ``substeps``), the hand's mass at the HIP when a patient holds the handle (``held``)
-    and the unmodelled joint friction."""
+    and the unmodelled joint friction (``frozen_dynamics``: see :class:`ExoPlant`)."""
     cfg = scene.config
     return ExoPlant(
         model,
@@ -157,6 +158,7 @@ def build_plant(
         substeps=cfg.loop.substeps if substeps is None else substeps,
         hand_mass_kg=cfg.patient.mass_kg if held else 0.0,
         joint_friction_nms_per_rad=cfg.robot.joint_friction_nms_per_rad,
+        frozen_dynamics=frozen_dynamics,
     )
 
 

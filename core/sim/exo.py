@@ -67,6 +67,13 @@ class ExoPlant:
         The patient's hand/forearm mass at the HIP (kg).
     joint_friction_nms_per_rad
         Viscous friction per joint (N m s/rad), unknown to the controller.
+    frozen_dynamics
+        Evaluate the robot's configuration terms (``M``, ``h``, ``J``, ``Jdot qd``) once per
+        control period instead of at every substep, with the HIP moved by ``J dq`` within it.
+        The patient's spring still acts at every substep (it is what needs them); the arm moves
+        a few mrad in a period, so the terms change by a fraction of a percent. About half the
+        cost of a period: for the real-time emulated arm, whose budget is one core's share with
+        the app's cameras and view beside it. The deterministic simulation keeps the exact form.
     """
 
     def __init__(
@@ -78,8 +85,10 @@ class ExoPlant:
         substeps: int = 4,
         hand_mass_kg: float = 0.0,
         joint_friction_nms_per_rad: float = 0.0,
+        frozen_dynamics: bool = False,
     ) -> None:
         self.model = model
+        self.frozen_dynamics = bool(frozen_dynamics)
         n = model.n_joints
         q = np.array(q0, dtype=np.float64).reshape(-1)
         if q.shape != (n,) or not np.isfinite(q).all():
@@ -123,6 +132,8 @@ class ExoPlant:
         n = m.n_joints
         if tau.shape != (n,) or not np.isfinite(tau).all():
             raise InputError(f"tau: expected {n} finite torques, got {tau!r}")
+        if self.frozen_dynamics:
+            return self._step_frozen(tau, forces)
         h = self.dt / self.substeps
         mass = self.hand_mass_kg
         q, qd = self.q, self.qd
@@ -152,6 +163,50 @@ class ExoPlant:
                 q = np.clip(q, q_min, q_max)
                 qd = np.where((low & (qd < 0)) | (high & (qd > 0)), 0.0, qd)
             self.t += h
+        self.q, self.qd = q, qd
+        m.update(q, qd)
+        return self.state()
+
+    def _step_frozen(self, tau: FloatArray, forces: ForceModel | None) -> PlantState:
+        """:meth:`step` with the configuration terms of the period's start (``frozen_dynamics``)."""
+        m = self.model
+        h = self.dt / self.substeps
+        mass = self.hand_mass_kg
+        q0, qd = self.q, self.qd
+        if not (np.array_equal(m.q, q0) and np.array_equal(m.qd, qd)):
+            m.update(q0, qd)  # else the previous period's end left it here
+        J = m.hip_jacobian()
+        jdqd = m.hip_jdot_qd()
+        inertia = m.mass_matrix()
+        bias = tau - m.nonlinear_effects()
+        if mass > 0.0:
+            inertia = inertia + mass * (J.T @ J)
+            bias = bias - mass * (J.T @ jdqd)
+        # One inverse for the period (M is symmetric positive definite and well conditioned):
+        # each substep's solve becomes a product. NumPy's, not scipy's cho_factor: scipy's first
+        # call loads its LAPACK wrappers (>10 ms), which at the enable starved the drives.
+        inertia_inv = np.linalg.inv(inertia)
+        hip0 = m.hip_position()
+        q = q0
+        q_min, q_max = m.q_min, m.q_max
+        f = np.zeros(3)
+        qdd = np.zeros_like(qd)
+        for _ in range(self.substeps):
+            rhs = bias - self.friction * qd
+            if forces is not None:
+                hip = hip0 + J @ (q - q0)
+                f, tau_extra = forces(self.t, hip, J @ qd, q, qd, J, inertia)
+                rhs = rhs + J.T @ f + tau_extra
+            qdd = inertia_inv @ rhs
+            qd = qd + h * qdd
+            q = q + h * qd
+            low, high = q < q_min, q > q_max
+            if low.any() or high.any():
+                q = np.clip(q, q_min, q_max)
+                qd = np.where((low & (qd < 0)) | (high & (qd > 0)), 0.0, qd)
+            self.t += h
+        self._muscle = f
+        self._hand_force = f - mass * (J @ qdd + jdqd)
         self.q, self.qd = q, qd
         m.update(q, qd)
         return self.state()

@@ -158,6 +158,7 @@ class PatientArm:
             raise InputError("posture: must be finite")
         self.k_posture = _non_negative(posture_stiffness_nm_per_rad, "posture_stiffness")
         self.d_posture = _non_negative(posture_damping_nms_per_rad, "posture_damping")
+        self._projection: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
 
     def hand_force(self, t: float, hip: FloatArray, hip_velocity: FloatArray) -> FloatArray:
         """Muscle force on the hand (N, world) at time ``t`` for the HIP state given."""
@@ -193,8 +194,14 @@ class PatientArm:
         if self.k_posture == 0.0 and self.d_posture == 0.0:
             return np.zeros_like(q)
         tau = self.k_posture * (self.posture - q) - self.d_posture * qd
-        minv_jt = np.linalg.solve(inertia, jacobian.T)
-        lam = np.linalg.pinv(jacobian @ minv_jt, rcond=1e-9)  # task-space inertia, guarded
+        cached = self._projection
+        if cached is not None and cached[0] is jacobian and cached[1] is inertia:
+            minv_jt, lam = cached[2], cached[3]  # the same configuration terms (frozen_dynamics)
+        else:
+            minv_jt = np.linalg.solve(inertia, jacobian.T)
+            lam = np.linalg.pinv(jacobian @ minv_jt, rcond=1e-9)  # task-space inertia, guarded
+            # Held by reference: the arrays cannot be freed and their ids reused meanwhile.
+            self._projection = (jacobian, inertia, minv_jt, lam)
         return tau - jacobian.T @ (lam @ (minv_jt.T @ tau))
 
 
