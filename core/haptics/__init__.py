@@ -14,6 +14,7 @@ from .distance import (
     constraint_jacobian,
     d_proj,
     haptic_state,
+    trusted_d_proj,
 )
 from .force import ForceConstraint, ForceConstraintConfig, contact_force_n, effective_mass_kg
 from .iso15066 import BODY_REGIONS, BodyRegion, body_region, max_transient_speed_mps
@@ -40,4 +41,5 @@ __all__ = [
     "effective_mass_kg",
     "haptic_state",
     "max_transient_speed_mps",
+    "trusted_d_proj",
 ]

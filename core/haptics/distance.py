@@ -204,7 +204,18 @@ def d_proj(centroid: ArrayLike, normal: ArrayLike, hip: ArrayLike, r_hip_m: floa
     r = as_finite_scalar(r_hip_m, "r_hip_m")
     if r < 0.0:
         raise InputError(f"r_hip_m = {r}: must be >= 0")
-    return float((c - h) @ (-n)) - r
+    return trusted_d_proj(c, n, h, r)
+
+
+def trusted_d_proj(
+    centroid: FloatArray, normal: FloatArray, hip: FloatArray, r_hip_m: float
+) -> float:
+    """The formula of :func:`d_proj`, ``(h - c) . n - r_hip`` (m), without any check.
+
+    For float arrays of shape (3,) with a unit ``normal`` already known (a fused surface's, the
+    loop's): the checks of :func:`d_proj` cost ~20 µs a call, which at 800 Hz is 2 % of a core.
+    """
+    return float((hip - centroid).dot(normal)) - r_hip_m
 
 
 def constraint_jacobian(normal: ArrayLike, jacobian: ArrayLike) -> FloatArray:
@@ -348,7 +359,7 @@ def trusted_haptic_state(hip: HipState, surface: SurfacePoint) -> HapticState:
     n = surface.normal
     J_c = n.dot(hip.jacobian)
     return HapticState(
-        float((hip.position - surface.centroid).dot(n)) - hip.radius_m,
+        trusted_d_proj(surface.centroid, n, hip.position, hip.radius_m),
         J_c,
         float(n.dot(hip.jdot_qd)),
         float(J_c.dot(hip.qd)),

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from hapticloud.core.fusion import FusedSurface, SurfaceFusion
 from hapticloud.core.geometry.primitives import Primitive
-from hapticloud.core.haptics import d_proj
+from hapticloud.core.haptics import trusted_d_proj
 from hapticloud.core.perception import STAGES, CameraPipeline, SurfaceEstimate
 from hapticloud.core.scene.schema import CameraSpec
 from hapticloud.core.sim import GroundTruth
@@ -422,7 +422,7 @@ class Display:
         rows: list[tuple[float, float, float, float]] = []
         # Ticks before this frame see only the estimates before it.
         while self.next_tick < t:
-            tick_hip = hip if live else self.hip_path(self.next_tick)
+            tick_hip = hip if live else np.asarray(self.hip_path(self.next_tick), dtype=np.float64)
             _tick(self.fusion, self.next_tick, tick_hip, self.r_hip, rows)
             self.next_tick += self.tick_dt
         if admitted:
@@ -491,8 +491,9 @@ def _tick(
 ) -> tuple[FusedSurface, float]:
     fused = fusion.sample(t)
     if fused.valid:
-        dp = d_proj(fused.centroid, fused.normal, hip, r_hip)
-        target = d_proj(fused.target_centroid, fused.target_normal, hip, r_hip)
+        # The fusion hands out float (3,) arrays with unit normals (checked there).
+        dp = trusted_d_proj(fused.centroid, fused.normal, hip, r_hip)
+        target = trusted_d_proj(fused.target_centroid, fused.target_normal, hip, r_hip)
     else:
         dp = target = math.nan
     rows.append((t, float(fused.valid), 1e3 * dp, 1e3 * target))
