@@ -110,6 +110,83 @@ _CIRCLE_SEGMENTS = 48
 _EMPTY = np.zeros((1, 3))
 
 
+#: The 3D view's render scale under software OpenGL (``auto``): VTK renders 0.75 x 0.75 of the
+#: widget's pixels and the paint stretches them over it. llvmpipe's shading is most of the GUI's
+#: CPU (perf on the demo: 65 %, the JIT-compiled shaders and swrast); the view then keeps 20 fps
+#: on the 2-core machine beside the cameras and the control loop. Sizes of points, lines and
+#: text are scaled to match, so only sharpness changes. A GPU renders at full scale.
+SOFTWARE_RENDER_SCALE = 0.75
+_SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer")
+
+
+def software_opengl(capabilities: str) -> bool:
+    """Whether VTK's capability report names a software OpenGL renderer (Mesa's llvmpipe...).
+
+    >>> software_opengl("OpenGL renderer string:  llvmpipe (LLVM 15.0.6, 256 bits)")
+    True
+    >>> software_opengl("OpenGL renderer string:  NVIDIA GeForce RTX 3060/PCIe/SSE2")
+    False
+    """
+    for line in capabilities.splitlines():
+        if "renderer string" in line.lower():
+            return any(name in line.lower() for name in _SOFTWARE_RENDERERS)
+    return False
+
+
+class _ScaledInteractor(QtInteractor):
+    """A :class:`QtInteractor` whose VTK render window has ``render_scale`` times the widget's
+    device pixels (``None``: decided at the first resize, from the OpenGL renderer); the paint
+    stretches it over the widget with a linear filter, and mouse positions scale the same way."""
+
+    def __init__(self, parent: QtWidgets.QWidget, scale: float | None, **kwargs: object) -> None:
+        self.render_scale: float | None = scale
+        self.on_scale: list[object] = []  # callbacks once the scale is known
+        super().__init__(parent, **kwargs)
+
+    def _ratio(self) -> float:
+        return self.devicePixelRatioF() * (self.render_scale or 1.0)
+
+    def resizeGL(self, w: int, h: int) -> None:  # noqa: N802
+        rw = self._RenderWindow
+        if rw is None:
+            return
+        if self.render_scale is None:  # a current context here: ask which renderer it is
+            soft = software_opengl(rw.ReportCapabilities())
+            self.render_scale = SOFTWARE_RENDER_SCALE if soft else 1.0
+            for callback in self.on_scale:
+                callback(self.render_scale)  # type: ignore[operator]
+        ratio = self._ratio()
+        dw, dh = max(1, round(w * ratio)), max(1, round(h * ratio))
+        iren = rw.GetInteractor()
+        if iren is not None:
+            iren.UpdateSize(dw, dh)
+            iren.InvokeEvent("ConfigureEvent")
+        else:
+            rw.SetSize(dw, dh)
+        rw.SetDPI(round(72 * ratio))
+
+    def _setEventInformation(  # noqa: N802
+        self,
+        x: int,
+        y: int,
+        ctrl: bool,
+        shift: bool,
+        key: str,
+        repeat: int = 0,
+        keysum: str | None = None,
+    ) -> None:
+        ratio = self._ratio()  # VTK's y axis points up; its pixels are the render window's
+        self._Iren.SetEventInformation(
+            round(x * ratio),
+            round((self.height() - y - 1) * ratio),
+            ctrl,
+            shift,
+            key,
+            repeat,
+            keysum,
+        )
+
+
 def _hex_rgb(colour: str) -> tuple[int, int, int]:
     colour = colour.lstrip("#")
     return int(colour[0:2], 16), int(colour[2:4], 16), int(colour[4:6], 16)
@@ -201,14 +278,23 @@ class SceneView(QtWidgets.QWidget):
     :meth:`show_snapshot` per displayed frame (updates them in place and schedules one paint).
     """
 
-    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+    #: The render scale of views made without one: ``None`` is ``auto`` (see
+    #: :data:`SOFTWARE_RENDER_SCALE`); ``hapticloud app --render-scale`` sets it.
+    default_render_scale: float | None = None
+
+    def __init__(
+        self, parent: QtWidgets.QWidget | None = None, *, render_scale: float | None = None
+    ) -> None:
         super().__init__(parent)
         # Measured in software GL (llvmpipe, 880x500 view, two 5000-point clouds and every
         # overlay): pyvista's 8x MSAA halves the frame rate; its 5-light kit costs ~15 % over a
         # headlight and a key light; VTK's order-independent transparency (on by default when
         # depth peeling is off) costs ~25 %. Without it translucent layers blend in actor order,
         # which for these faint overlays is indistinguishable.
-        self.plotter = QtInteractor(self, auto_update=False, multi_samples=0, lighting="none")
+        scale = self.default_render_scale if render_scale is None else render_scale
+        self.plotter = _ScaledInteractor(
+            self, scale, auto_update=False, multi_samples=0, lighting="none"
+        )
         self.plotter.renderer.SetUseOIT(False)
         self.plotter.add_light(pv.Light(light_type="headlight", intensity=0.75))
         # Camera-light coordinates: the camera at +z looking at the origin, +y up: upper left.
@@ -240,6 +326,27 @@ class SceneView(QtWidgets.QWidget):
         self._capsule_normals = np.array(self._capsule.point_data["Normals"])
         self.frames_shown = 0
         self.force_n = 0.0
+        # Point sizes and line widths at full scale, applied x the render scale (text follows
+        # the render window's DPI, which the interactor scales).
+        self._sizes: dict[str, tuple[float, float]] = {}
+        self.plotter.on_scale.append(self._rescale)
+
+    @property
+    def render_scale(self) -> float | None:
+        """The VTK render window's pixels per widget pixel (``None`` until the first resize
+        decides ``auto``)."""
+        return self.plotter.render_scale
+
+    def _rescale(self, scale: float) -> None:
+        for name in self._sizes:
+            self._size_actor(name)
+
+    def _size_actor(self, name: str) -> None:
+        point, line = self._sizes[name]
+        scale = self.plotter.render_scale or 1.0
+        prop = self._actors[name].GetProperty()
+        prop.SetPointSize(point * scale)
+        prop.SetLineWidth(line * scale)
 
     # ----- building (once per source) ----------------------------------------------------------
     def _add(
@@ -256,6 +363,9 @@ class SceneView(QtWidgets.QWidget):
         actor = self.plotter.add_mesh(mesh, name=name, render=False, reset_camera=False, **kwargs)
         self._meshes[name] = mesh
         self._actors[name] = actor
+        prop = actor.GetProperty()
+        self._sizes[name] = (prop.GetPointSize(), prop.GetLineWidth())
+        self._size_actor(name)
         self._has_data[name] = static
         self._layer_of[name] = layer
         if layer is not None:
@@ -269,6 +379,7 @@ class SceneView(QtWidgets.QWidget):
         self._matrices.clear()
         self._meshes.clear()
         self._actors.clear()
+        self._sizes.clear()
         self._has_data.clear()
         for names in self._layers.values():
             names.clear()
@@ -367,7 +478,15 @@ class SceneView(QtWidgets.QWidget):
                 if shape == "sphere"
                 else pv.Cube()
             )
-            self._add(f"robot:{i}", template, "robot", color=ROBOT_COLOUR, opacity=ROBOT_OPACITY)
+            self._add(
+                f"robot:{i}",
+                template,
+                "robot",
+                color=ROBOT_COLOUR,
+                opacity=ROBOT_OPACITY,
+                lighting=False,
+                culling="back",
+            )
         self._add(
             "shell_spheres",
             pv.Sphere(radius=1e-3),
@@ -808,8 +927,20 @@ class SceneView(QtWidgets.QWidget):
 
     # ----- images -------------------------------------------------------------------------------
     def image(self) -> NDArray[np.uint8]:
-        """The 3D view rendered now, ``(H, W, 3)`` uint8 (for screenshots and tests)."""
-        return np.asarray(self.plotter.screenshot(return_img=True))
+        """The 3D view rendered now as the widget shows it, ``(H, W, 3)`` uint8 in device pixels
+        (for screenshots and tests): VTK's frame stretched like the paint stretches it."""
+        from .screenshot import qimage_from_rgb, qimage_to_array
+
+        rgb = np.asarray(self.plotter.screenshot(return_img=True))
+        ratio = self.plotter.devicePixelRatioF()
+        w, h = round(self.plotter.width() * ratio), round(self.plotter.height() * ratio)
+        if rgb.shape[:2] == (h, w):
+            return rgb
+        smooth = QtCore.Qt.TransformationMode.SmoothTransformation
+        stretched = qimage_from_rgb(rgb).scaled(
+            w, h, QtCore.Qt.AspectRatioMode.IgnoreAspectRatio, smooth
+        )
+        return qimage_to_array(stretched)
 
     def close_view(self) -> None:
         """Release the VTK render window (call before the widget is destroyed)."""

@@ -18,7 +18,8 @@ from numpy.typing import NDArray
 from PyQt6 import QtCore, QtGui, QtWidgets
 
 
-def _qimage_from_rgb(rgb: NDArray[np.uint8]) -> QtGui.QImage:
+def qimage_from_rgb(rgb: NDArray[np.uint8]) -> QtGui.QImage:
+    """A QImage owning a copy of ``(H, W, 3)`` uint8 RGB pixels."""
     rgb = np.ascontiguousarray(rgb[..., :3], dtype=np.uint8)
     h, w, _ = rgb.shape
     image = QtGui.QImage(rgb.data, w, h, 3 * w, QtGui.QImage.Format.Format_RGB888)
@@ -41,7 +42,7 @@ def grab_window(window: QtWidgets.QWidget) -> QtGui.QImage:
     plotter = getattr(view, "plotter", None)
     if plotter is not None and plotter.isVisible():
         rgb = np.asarray(plotter.screenshot(return_img=True))
-        frame = _qimage_from_rgb(rgb)
+        frame = qimage_from_rgb(rgb)
         ratio = image.devicePixelRatio() or 1.0
         top_left = plotter.mapTo(window, QtCore.QPoint(0, 0))
         target = QtCore.QRect(

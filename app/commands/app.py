@@ -64,6 +64,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=DEFAULT_SIZE,
         help="window size in pixels (default {}x{})".format(*DEFAULT_SIZE),
     )
+    parser.add_argument(
+        "--render-scale",
+        metavar="S",
+        type=render_scale,
+        default=None,
+        help="3D view render resolution per screen pixel, 0.25-1 (default auto: 0.75 under "
+        "software OpenGL, where shading is most of the GUI's CPU; 1 with a GPU)",
+    )
     parser.add_argument("--preset", metavar="FILE", help="start with this parameter preset (TOML)")
     parser.add_argument(
         "--view",
@@ -103,6 +111,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     add_recording_options(parser)
     parser.set_defaults(handler=run)
+
+
+def render_scale(text: str) -> float | None:
+    """argparse type: ``auto`` (None) or a number in [0.25, 1]."""
+    if text == "auto":
+        return None
+    value = positive_float(text)
+    if not 0.25 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be auto or in [0.25, 1], got {text}")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -150,11 +168,13 @@ def _run_window(
 ) -> int:
     from hapticloud.app.commands.display import desktop_application
     from hapticloud.app.main_window import MainWindow
+    from hapticloud.app.scene_view import SceneView
     from hapticloud.app.screenshot import run_window
     from hapticloud.hardware.live.session import Session
     from hapticloud.hardware.live.source import LiveSource
 
     app = desktop_application()
+    SceneView.default_render_scale = args.render_scale
     scene = settings.scene  # type: ignore[attr-defined]
     window = MainWindow(
         lambda cfg, session=None: LiveSource(settings, cfg, session=session),  # type: ignore[arg-type]

@@ -90,9 +90,11 @@ def _window(
 ) -> int:
     from hapticloud.app.commands.display import desktop_application
     from hapticloud.app.recording_window import RecordingWindow
+    from hapticloud.app.scene_view import SceneView
     from hapticloud.app.screenshot import run_window
 
     app = desktop_application()
+    SceneView.default_render_scale = args.render_scale
     window = RecordingWindow(source)
     window.controls.color_mode.setCurrentText(args.color_by)
     window.controls.preset_actions[args.view].trigger()
