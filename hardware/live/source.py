@@ -300,10 +300,17 @@ class LiveSource:
         stamps = state.arrivals[p.camera]
         stamps.append(now)
         rate = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 2 else math.nan
+        previous = state.newest.get(p.camera)
+        if p.context is not None:
+            context = read_only_copy(p.context, np.float32)
+        elif previous is not None:
+            context = previous.context  # read-only already: shared, not copied
+        else:
+            context = np.empty((0, 3), dtype=np.float32)
         state.newest[p.camera] = CameraFrame(
             name=est.camera,
             estimate=est,
-            context=read_only_copy(p.context, np.float32),
+            context=context,
             render_ms=p.render_ms,
             rate_hz=rate,
             d_proj_m=p.d_proj_m,

@@ -64,6 +64,11 @@ ADMIT_MIN_QUALITY = CameraSpec().min_quality
 #: rendered by a twin camera binned by this factor: perception's camera renders only the pixels
 #: of the workspace sphere (what stage A reads), a 64th of the rays goes to the picture around it.
 CONTEXT_STRIDE = 8
+#: Each camera's scene cloud is rendered and sent at most this often (s, scene time); frames in
+#: between carry none and the receiver keeps the last. It is a picture of the room around the
+#: workspace (its layer is off by default), not something perception or the truth reads: at
+#: every frame it cost ~8 % of a core of the 2 (render, pickling and the receiver's copy).
+CONTEXT_PERIOD_S = 0.2
 
 
 @dataclass(frozen=True)
@@ -112,7 +117,7 @@ class FramePacket:
     hip: FloatArray
     robot: tuple[Primitive, ...]
     estimate: dict[str, Any]
-    context: NDArray[np.float32]
+    context: NDArray[np.float32] | None  # None: unchanged since this camera's last one
     render_ms: float
     d_proj_m: float
     error_mm: float
@@ -346,6 +351,7 @@ class Display:
         self.channels = list(channels)
         self.index = {c.name: j for j, c in enumerate(self.channels)}
         self.twins = [_context_camera(c.source.camera) for c in self.channels]
+        self.context_t = [-math.inf] * len(self.channels)  # scene time of each one's last
         self.fusion = SurfaceFusion(config.fusion)
         self.tick_dt = 1.0 / CONTROL_RATE_HZ
         self.version, self.sent_version = 0, -1
@@ -375,7 +381,11 @@ class Display:
         if self.recording is not None:
             crop = self.channels[j].crop
             cut = _cut(item.frame, hip, robot, est, crop, self.recording)
-        context = self.twins[j].render(world, t, occluders=robot).points_world()
+        context = None
+        if not 0.0 <= t - self.context_t[j] < CONTEXT_PERIOD_S:  # due, or the clock went back
+            context = self.twins[j].render(world, t, occluders=robot).points_world()
+            context = context.astype(np.float32)
+            self.context_t[j] = t
         truth = world.ground_truth(hip, t)
         fused, fused_dp, tick_rows = self._fuse(est, item.admitted, t, hip, item.q is not None)
         dp, err, nerr, row = _frame_row(j, t, est, fused, truth, hip, self.r_hip)
@@ -395,7 +405,7 @@ class Display:
                 hip=hip,
                 robot=robot,
                 estimate=_estimate_fields(est),
-                context=context.astype(np.float32),
+                context=context,
                 render_ms=item.perception_ms - float(est.stage_ms.get("total", 0.0)),
                 d_proj_m=dp,
                 error_mm=err,

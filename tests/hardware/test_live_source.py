@@ -124,3 +124,48 @@ def test_scene_files_open_in_the_app_and_bad_ones_say_why():
     with pytest.raises(ConfigError) as err:
         SimSettings(scene="no-such-scene")
     assert "no-such-scene" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_each_camera_sends_its_scene_cloud_at_most_every_context_period() -> None:
+    """The scene cloud is a picture of the room: rendered and sent every CONTEXT_PERIOD_S per
+    camera, the frames between carry none, and every snapshot shows the camera's last one."""
+    import dataclasses
+    import queue
+    import threading
+
+    from hapticloud.hardware.live import worker as live_worker
+    from hapticloud.hardware.live.session import scene_tables
+
+    class Conn:
+        def __init__(self) -> None:
+            self.packets: list = []
+
+        def send(self, packet) -> None:
+            self.packets.append(packet)
+
+    conn = Conn()
+    config = dataclasses.replace(LiveConfig(), **scene_tables("demo"))
+    w = live_worker._Worker(FAST, config, conn, queue.Queue(), threading.Event())
+    w.perception.start()
+    deadline = time.monotonic() + 20.0
+    while len(conn.packets) < 40 and time.monotonic() < deadline:
+        time.sleep(max(0.0, w.perception.step() - time.monotonic()))
+    w.perception.close()
+    assert len(conn.packets) >= 40
+    for j in range(len(w.display.channels)):
+        mine = [p for p in conn.packets if p.camera == j]
+        sent = [p.t for p in mine if p.context is not None]
+        assert mine[0].context is not None and len(mine[0].context) > 100
+        assert 1 < len(sent) < len(mine)  # some frames carry one, most do not
+        assert np.all(np.diff(sent) >= live_worker.CONTEXT_PERIOD_S - 1e-9)
+        # Never longer without one than the period plus a frame.
+        assert np.all(np.diff(sent) < live_worker.CONTEXT_PERIOD_S + 0.07)
+    # The receiver keeps the last cloud of each camera for the frames without one.
+    from hapticloud.hardware.live.source import _Receiver
+
+    cameras = len(w.display.channels)
+    src, state = LiveSource(FAST), _Receiver(cameras)
+    snaps = [src._compose(state, p) for p in conn.packets]
+    for snap in snaps[cameras:]:
+        for frame in snap.cameras:
+            assert len(frame.context) > 100 and not frame.context.flags.writeable
