@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import queue
 import time
 import traceback
@@ -69,6 +70,11 @@ CONTEXT_STRIDE = 8
 #: workspace (its layer is off by default), not something perception or the truth reads: at
 #: every frame it cost ~8 % of a core of the 2 (render, pickling and the receiver's copy).
 CONTEXT_PERIOD_S = 0.2
+#: ``nice`` increment of the worker process (negative: ahead of the GUI when both want the CPU).
+#: Its frames feed the control loop's estimate and frame watchdogs (0.1 s): on 2 cores beside
+#: the GUI's software rendering a late frame held the surface a few times a minute, while a
+#: slower view costs only smoothness. Needs root (or CAP_SYS_NICE); refused, it runs at 0.
+WORKER_NICE = -5
 
 
 @dataclass(frozen=True)
@@ -170,6 +176,10 @@ def run_worker(
     control process's robot and every estimate goes to it.
     """
     worker: _Worker | None = None
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:
+        pass  # not permitted: the default priority
     try:
         worker = _Worker(settings, config, conn, requests, stop)
         if session is not None:
