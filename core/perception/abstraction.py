@@ -104,6 +104,14 @@ class QuadricConfig(StageConfig):
     second_surface_min_points: int = param(
         16, lo=1, hi=10000, doc="fewer such nearer points: noise (flying pixels), not a surface"
     )
+    narrow_below_quality: float = param(
+        0.5,
+        lo=0.0,
+        hi=1.0,
+        doc="a fit of lower quality is tried again with half the bandwidth (an edge or a step "
+        "inside it); the better one answers",
+    )
+    narrowings: int = param(1, lo=0, hi=3, doc="how many times the bandwidth may be halved")
 
 
 @dataclass(frozen=True)

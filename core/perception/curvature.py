@@ -29,6 +29,7 @@ weights then reject part of the points and ``quality`` drops with the inlier fra
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -178,9 +179,44 @@ def quadric_surface(
     # A uniform subsample of about max_points is all the fits below use (speed).
     rel = points[:: max(1, n // qc.max_points)] - hip
     d2 = np.einsum("ij,ij->i", rel, rel)
+    best: SurfaceFit | str = ""
+    for level in range(qc.narrowings + 1):
+        # An edge or a step inside the bandwidth is smoothed over and the fit loses quality:
+        # a narrower bandwidth models only the surface near the closest point.
+        narrowed = (
+            qc if level == 0 else dataclasses.replace(qc, bandwidth_m=qc.bandwidth_m / 2**level)
+        )
+        result = _quadric_fit(points, hip, rel, d2, camera_axis, narrowed)
+        if isinstance(result, str):
+            best = best or result
+        elif isinstance(best, str):
+            best = result
+        elif (
+            result.quality > best.quality
+            and result.residual_m < _NARROWED_RESIDUAL * best.residual_m
+        ):
+            # Structure smoothed over leaves the narrower fit with a much smaller residual;
+            # noise (a far body) does not, and fewer points would only make it noisier.
+            best = result
+        if not isinstance(best, str) and best.quality >= qc.narrow_below_quality:
+            break
+    if isinstance(best, str):
+        return _fallback(points, hip, camera_axis, cfg, best)
+    return best
+
+
+def _quadric_fit(
+    points: FloatArray,
+    hip: FloatArray,
+    rel: FloatArray,
+    d2: FloatArray,
+    camera_axis: FloatArray,
+    qc: QuadricConfig,
+) -> SurfaceFit | str:
+    """Steps 1-4 at ``qc.bandwidth_m``: the estimate, or a string saying why there is none."""
     fit = _fit_surface(rel, d2, camera_axis, qc)
     if isinstance(fit, str):
-        return _fallback(points, hip, camera_axis, cfg, fit)
+        return fit
     surfaces, note = 1, ""
     if qc.second_surface:
         fit, surfaces, note = _nearer_surface(fit, points - hip, rel, d2, camera_axis, qc)
@@ -190,14 +226,13 @@ def quadric_surface(
     off = cand - origin
     gap_to_data = float(np.sqrt(np.min(np.einsum("ij,ij->i", off, off))))
     if gap_to_data > qc.max_extrapolation_m:
-        return _fallback(
-            points, hip, camera_axis, cfg, f"closest point {gap_to_data:.3f} m from the data"
-        )
+        return f"closest point {gap_to_data:.3f} m from the data"
     inlier = robust > 0.5
     bw = qc.bandwidth_m
     surround = _surround(off[inlier][:: max(1, len(off) // qc.coarse_points)], normal, bw)
     noise_ratio = fit.scale / qc.noise_floor_m
     quality = fit.inliers * surround / (1.0 + 0.01 * noise_ratio * noise_ratio)
+    n = len(points)
     return SurfaceFit(
         True, hip + origin, normal, note, (), quality, "quadric", fit.model, n, surfaces, fit.scale
     )
@@ -257,6 +292,8 @@ def _fit_surface(
     return _Fit(origin, normal, model, scale, inliers, cand, robust, frame, frame_origin, coef)
 
 
+#: A narrower fit answers only if its residual scale is below this share of the wider one's.
+_NARROWED_RESIDUAL = 0.6
 #: A second surface must explain this share of its points at the noise scale (not outliers).
 _MIN_SECOND_INLIERS = 0.7
 #: Refits of each surface at a crease with the robust scale held at the measured noise.

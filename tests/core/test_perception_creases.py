@@ -39,9 +39,12 @@ def test_the_nearer_of_two_surfaces_is_taken_not_a_blend():
         cloud,
         hip,
         [-1.0, 0.0, 0.0],
-        AbstractionConfig().replace_path("quadric.second_surface", False),
+        AbstractionConfig()
+        .replace_path("quadric.second_surface", False)
+        .replace_path("quadric.narrowings", 0),
     )
-    # Without the check the fit keeps the plane (the larger surface): farther than the truth.
+    # Without the check (and without the narrower refit, which finds the cylinder too) the fit
+    # keeps the plane (the larger surface): farther than the truth.
     assert one.d_proj(hip, 0.0) - min(d_cyl, hip[0]) > 1e-3
 
 
@@ -74,3 +77,36 @@ def test_train_and_heldout_scenes_differ():
     assert not set(train) & set(held)
     with pytest.raises(ValueError):
         contact_bench_scenes("test")
+
+
+def _ridge(rng: np.random.Generator, noise_m: float) -> np.ndarray:
+    """A convex ridge along y: z = 0 for x < 0, falling at 80 deg for x > 0 (a box's edge)."""
+    x, y = rng.uniform(-0.15, 0.15, 8000), rng.uniform(-0.15, 0.15, 8000)
+    z = np.where(x < 0, 0.0, -np.tan(np.radians(80.0)) * x)
+    return np.column_stack((x, y, z + rng.normal(0.0, noise_m, len(x))))
+
+
+def test_an_edge_inside_the_bandwidth_is_fitted_again_narrower() -> None:
+    hip = np.array([-0.01, 0.0, 0.05])  # above the flat side, 10 mm from the edge
+    cloud = _ridge(np.random.default_rng(1), 0.0005)
+    wide_cfg = AbstractionConfig().replace_path("quadric.narrowings", 0)
+    wide = estimate_surface(cloud, hip, [0.0, 0.0, -1.0], wide_cfg)
+    fit = estimate_surface(cloud, hip, [0.0, 0.0, -1.0])
+    assert wide.valid and fit.valid
+    assert wide.quality < 0.5 <= fit.quality  # the edge smoothed over, then modelled locally
+    assert fit.residual_m < 0.6 * wide.residual_m
+    assert abs(fit.d_proj(hip, 0.0) - 0.05) < 0.3e-3 < abs(wide.d_proj(hip, 0.0) - 0.05)
+
+
+def test_noise_alone_does_not_narrow_the_fit() -> None:
+    """A far body's noise lowers the quality too, but a narrower fit would only be noisier: its
+    residual is not much smaller, so the wide fit answers."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-0.15, 0.15, size=(8000, 2))
+    cloud = np.column_stack((xy, rng.normal(0.0, 0.004, len(xy))))
+    hip = np.array([0.0, 0.0, 0.05])
+    wide_cfg = AbstractionConfig().replace_path("quadric.narrowings", 0)
+    wide = estimate_surface(cloud, hip, [0.0, 0.0, -1.0], wide_cfg)
+    fit = estimate_surface(cloud, hip, [0.0, 0.0, -1.0])
+    assert wide.quality < 0.5  # the noise is 8x the floor: a narrower fit is tried
+    assert np.array_equal(fit.centroid, wide.centroid) and fit.quality == wide.quality
