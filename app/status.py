@@ -52,6 +52,7 @@ class StatusPanel:
         "age",
         "latency",
         "error",
+        "fusion",
         "view",
     )
 
@@ -81,6 +82,8 @@ class StatusPanel:
             "grows while the cameras see no surface",
             "latency": "frame-to-screen: from the camera frame's capture to this display",
             "error": "distance from the fused centroid to the true closest point (simulation)",
+            "fusion": "how far apart the cameras' own surfaces lie along the HIP's distance; "
+            "'disagree' when more than their scatter explains (the nearer camera answers)",
             "view": "3D view updates per second",
             "session": "state of the control process's session (drives)",
             "control": "control loop rate / deadline misses since it started",
@@ -104,6 +107,29 @@ class StatusPanel:
         misses = getattr(snap, "misses", 0)
         rate_text = f"{rate:.0f} Hz" if math.isfinite(rate) else NO_VALUE
         self.labels["control"].setText(f"control {rate_text}, {misses} misses")
+
+    def _show_fusion(self, snap: Snapshot) -> None:
+        """The cameras' agreement (the fused quality) and what each camera's estimate noted."""
+        label, fused = self.labels["fusion"], snap.fused
+        notes = [
+            f"{cam.name}: {cam.estimate.note}"
+            for cam in snap.cameras
+            if cam.estimate.valid and getattr(cam.estimate, "note", "")
+        ]
+        if fused is None or not fused.valid:
+            text, style, tip = f"cameras {NO_VALUE}", "", "no fused surface"
+        elif fused.disagree:
+            text = f"cameras disagree {1e3 * fused.disagreement_m:.1f} mm"
+            style, tip = "color:#b35900; font-weight:600;", fused.quality_note
+        else:
+            text = f"cameras agree {1e3 * fused.disagreement_m:.1f} mm"
+            style, tip = "", fused.quality_note or "one camera"
+        two = sum(getattr(cam.estimate, "surfaces", 1) > 1 for cam in snap.cameras)
+        if two:
+            text += f", {two} at a crease"  # two surfaces seen, the nearer taken
+        label.setText(text)
+        label.setStyleSheet(style)
+        label.setToolTip("\n".join([tip, *notes]))
 
     def set_state(self, state: SourceState, message: str) -> None:
         label = self.labels["state"]
@@ -163,6 +189,7 @@ class StatusPanel:
         if snap.truth is not None and fused is not None and fused.valid:
             err = 1e3 * float(np.linalg.norm(fused.centroid - snap.truth.point))
         self.labels["error"].setText(f"error {_mm(err)}")
+        self._show_fusion(snap)
         self.labels["view"].setText(
             f"view {view_fps:4.1f} fps" if math.isfinite(view_fps) else f"view {NO_VALUE}"
         )

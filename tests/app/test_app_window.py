@@ -133,6 +133,31 @@ def test_an_invalid_value_is_refused_with_its_message_and_never_applied(live) ->
     assert window.shown.config.perception.crop == before.perception.crop
 
 
+def test_the_status_bar_says_whether_the_cameras_agree(live) -> None:
+    """The fused quality in words (issue: two cameras that disagree): agree or disagree with the
+    distance between the cameras' surfaces, the fusion's note in the tooltip, orange when they
+    disagree; a camera that saw two surfaces is counted."""
+    import dataclasses
+
+    window, _ = live
+    snap = window.shown
+    assert snap.fused is not None and snap.fused.valid
+    label = window.status.labels["fusion"]
+    window.status.show(snap, window.view_fps, force=True)
+    assert label.text().startswith("cameras agree") or label.text().startswith("cameras disagree")
+    fused = dataclasses.replace(
+        snap.fused, disagree=True, disagreement_m=0.0042, quality_note="front 4.2 mm farther"
+    )
+    cam = snap.cameras[0]
+    est = dataclasses.replace(cam.estimate, surfaces=2, note="the nearer of two surfaces")
+    cameras = (dataclasses.replace(cam, estimate=est), *snap.cameras[1:])
+    window.status.show(dataclasses.replace(snap, fused=fused, cameras=cameras), 20.0, force=True)
+    assert label.text() == "cameras disagree 4.2 mm, 1 at a crease"
+    assert "b35900" in label.styleSheet()
+    assert "front 4.2 mm farther" in label.toolTip()
+    assert f"{cam.name}: the nearer of two surfaces" in label.toolTip()
+
+
 def _restart(window: MainWindow, qtbot) -> None:
     old = window.source
     window.restart()
