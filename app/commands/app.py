@@ -113,6 +113,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=run)
 
 
+#: ``nice`` value the live window's process takes before it builds the window (so its render
+#: threads inherit it): on a machine short of cores the display gives way to the perception
+#: worker (``WORKER_NICE``) whose frames the control loop's watchdogs wait for; the control
+#: loop runs SCHED_FIFO above both. A process already nicer keeps its value.
+GUI_NICE = 5
+
+
+def _give_way() -> None:
+    import os
+
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, max(os.getpriority(os.PRIO_PROCESS, 0), GUI_NICE))
+    except (OSError, AttributeError):
+        pass  # not on this platform: the default priority
+
+
 def render_scale(text: str) -> float | None:
     """argparse type: ``auto`` (None) or a number in [0.25, 1]."""
     if text == "auto":
@@ -173,6 +189,7 @@ def _run_window(
     from hapticloud.hardware.live.session import Session
     from hapticloud.hardware.live.source import LiveSource
 
+    _give_way()
     app = desktop_application()
     SceneView.default_render_scale = args.render_scale
     scene = settings.scene  # type: ignore[attr-defined]

@@ -70,10 +70,11 @@ CONTEXT_STRIDE = 8
 #: workspace (its layer is off by default), not something perception or the truth reads: at
 #: every frame it cost ~8 % of a core of the 2 (render, pickling and the receiver's copy).
 CONTEXT_PERIOD_S = 0.2
-#: ``nice`` increment of the worker process (negative: ahead of the GUI when both want the CPU).
-#: Its frames feed the control loop's estimate and frame watchdogs (0.1 s): on 2 cores beside
-#: the GUI's software rendering a late frame held the surface a few times a minute, while a
-#: slower view costs only smoothness. Needs root (or CAP_SYS_NICE); refused, it runs at 0.
+#: ``nice`` value of the worker process (negative: ahead of the GUI when both want the CPU), set
+#: as is, not added to the GUI's (which gives way too: ``app.commands.app.GUI_NICE``). Its
+#: frames feed the control loop's estimate and frame watchdogs (0.1 s): on 2 cores beside the
+#: GUI's software rendering a late frame held the surface a few times a minute, while a slower
+#: view costs only smoothness. Needs root (or CAP_SYS_NICE); refused, it keeps the GUI's.
 WORKER_NICE = -5
 
 
@@ -177,9 +178,9 @@ def run_worker(
     """
     worker: _Worker | None = None
     try:
-        os.nice(WORKER_NICE)
+        os.setpriority(os.PRIO_PROCESS, 0, WORKER_NICE)
     except OSError:
-        pass  # not permitted: the default priority
+        pass  # not permitted: the priority it was started with
     try:
         worker = _Worker(settings, config, conn, requests, stop)
         if session is not None:
