@@ -61,7 +61,7 @@ class StatusPanel:
         self.labels: dict[str, QtWidgets.QLabel] = {}
         for key in self.FIELDS:
             label = QtWidgets.QLabel(NO_VALUE, bar)
-            label.setContentsMargins(6, 0, 6, 0)
+            label.setContentsMargins(4, 0, 4, 0)
             bar.addPermanentWidget(label)
             self.labels[key] = label
         self.labels["state"].setMinimumWidth(84)
@@ -82,8 +82,9 @@ class StatusPanel:
             "grows while the cameras see no surface",
             "latency": "frame-to-screen: from the camera frame's capture to this display",
             "error": "distance from the fused centroid to the true closest point (simulation)",
-            "fusion": "how far apart the cameras' own surfaces lie along the HIP's distance; "
-            "'disagree' when more than their scatter explains (the nearer camera answers)",
+            "fusion": "whether the cameras agree: how far apart their own surfaces lie along the "
+            "HIP's distance; DISAGREE when more than their scatter explains (the nearer camera "
+            "answers); 'crease': cameras that saw two surfaces and took the nearer",
             "view": "3D view updates per second",
             "session": "state of the control process's session (drives)",
             "control": "control loop rate / deadline misses since it started",
@@ -117,16 +118,16 @@ class StatusPanel:
             if cam.estimate.valid and getattr(cam.estimate, "note", "")
         ]
         if fused is None or not fused.valid:
-            text, style, tip = f"cameras {NO_VALUE}", "", "no fused surface"
+            text, style, tip = f"agree {NO_VALUE}", "", "no fused surface"
         elif fused.disagree:
-            text = f"cameras disagree {1e3 * fused.disagreement_m:.1f} mm"
+            text = f"DISAGREE {1e3 * fused.disagreement_m:.1f} mm"
             style, tip = "color:#b35900; font-weight:600;", fused.quality_note
         else:
-            text = f"cameras agree {1e3 * fused.disagreement_m:.1f} mm"
+            text = f"agree {1e3 * fused.disagreement_m:.1f} mm"
             style, tip = "", fused.quality_note or "one camera"
         two = sum(getattr(cam.estimate, "surfaces", 1) > 1 for cam in snap.cameras)
         if two:
-            text += f", {two} at a crease"  # two surfaces seen, the nearer taken
+            text += f", {two} crease"  # cameras that saw two surfaces (the nearer taken)
         label.setText(text)
         label.setStyleSheet(style)
         label.setToolTip("\n".join([tip, *notes]))
@@ -166,7 +167,7 @@ class StatusPanel:
         if not math.isfinite(rtf):
             rtf = snap.real_time_factor
         self.labels["speed"].setText(
-            f"sim {rtf:.2f}{TIMES} real time" if math.isfinite(rtf) else f"sim {NO_VALUE}"
+            f"sim {rtf:.2f}{TIMES}" if math.isfinite(rtf) else f"sim {NO_VALUE}"
         )
         frames = snap.history.frames
         recent = frames[snap.history.frame("t") > snap.t - WINDOW_S] if len(frames) else frames
@@ -182,7 +183,7 @@ class StatusPanel:
         valid_t = [c.estimate.t for c in snap.cameras if c.estimate.valid]
         age = 1e3 * (snap.t - max(valid_t)) if valid_t else math.inf
         self.labels["age"].setText(
-            f"estimate age {_ms(age, 0)}" if math.isfinite(age) else "no valid estimate"
+            f"age {_ms(age, 0)}" if math.isfinite(age) else "no valid estimate"
         )
         self.labels["latency"].setText(f"to screen {_ms(1e3 * (now - snap.captured), 0)}")
         err = math.nan
