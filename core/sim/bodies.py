@@ -381,8 +381,10 @@ class CapsuleBody(Body):
             v = p - on_axis
             v = v - float(v @ axis) * axis
         r = float(np.linalg.norm(v))
-        # On the axis (within round-off) every radial direction is nearest: take a fixed one.
-        n = v / r if r > noise else perpendicular
+        # Exactly on the axis every radial direction is nearest: take a fixed one. Just off it
+        # the offset's own direction, even if it is round-off: a fixed one would put the point
+        # up to 2 r from where the distance r - radius says (a query 1 km out, 2e-11 m off).
+        n = v / r if r > 0.0 else perpendicular
         return on_axis + self.radius_m * n, n, r - self.radius_m
 
     def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -431,8 +433,9 @@ class CylinderBody(Body):
         w = rel - h * axis
         w = w - float(w @ axis) * axis  # radial: the axial part left is round-off
         rho = float(np.linalg.norm(w))
-        # On the axis (within round-off) every radial direction is nearest: take a fixed one.
-        radial = w / rho if rho > noise else perpendicular
+        # Exactly on the axis every radial direction is nearest: take a fixed one; just off it
+        # the offset's own direction (as the capsule: the point agrees with rho - radius).
+        radial = w / rho if rho > 0.0 else perpendicular
         side = 1.0 if h >= 0 else -1.0
         d_r, d_h = rho - self.radius_m, abs(h) - half
         if d_r <= 0 and d_h <= 0:  # inside: leave through the nearer of side and cap
