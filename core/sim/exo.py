@@ -155,13 +155,7 @@ class ExoPlant:
             qdd = np.linalg.solve(inertia, rhs)
             self._muscle = f
             self._hand_force = f - mass * (J @ qdd + jdqd)
-            qd = qd + h * qdd
-            q = q + h * qd
-            # Hard end stops: clamp and drop the velocity into the stop.
-            low, high = q < q_min, q > q_max
-            if low.any() or high.any():
-                q = np.clip(q, q_min, q_max)
-                qd = np.where((low & (qd < 0)) | (high & (qd > 0)), 0.0, qd)
+            q, qd = _semi_implicit_step(q, qd, qdd, h, q_min, q_max)
             self.t += h
         self.q, self.qd = q, qd
         m.update(q, qd)
@@ -198,18 +192,27 @@ class ExoPlant:
                 f, tau_extra = forces(self.t, hip, J @ qd, q, qd, J, inertia)
                 rhs = rhs + J.T @ f + tau_extra
             qdd = inertia_inv @ rhs
-            qd = qd + h * qdd
-            q = q + h * qd
-            low, high = q < q_min, q > q_max
-            if low.any() or high.any():
-                q = np.clip(q, q_min, q_max)
-                qd = np.where((low & (qd < 0)) | (high & (qd > 0)), 0.0, qd)
+            q, qd = _semi_implicit_step(q, qd, qdd, h, q_min, q_max)
             self.t += h
         self._muscle = f
         self._hand_force = f - mass * (J @ qdd + jdqd)
         self.q, self.qd = q, qd
         m.update(q, qd)
         return self.state()
+
+
+def _semi_implicit_step(
+    q: FloatArray, qd: FloatArray, qdd: FloatArray, h: float, q_min: FloatArray, q_max: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """One semi-implicit Euler substep of ``h`` (s) with the hard end stops: the joints clamped
+    and their velocity into the stop dropped."""
+    qd = qd + h * qdd
+    q = q + h * qd
+    low, high = q < q_min, q > q_max
+    if low.any() or high.any():
+        q = np.clip(q, q_min, q_max)
+        qd = np.where((low & (qd < 0)) | (high & (qd > 0)), 0.0, qd)
+    return q, qd
 
 
 def solve_hip_ik(
