@@ -116,17 +116,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 #: ``nice`` value the live window's process takes before it builds the window (so its render
 #: threads inherit it): on a machine short of cores the display gives way to the perception
 #: worker (``WORKER_NICE``) whose frames the control loop's watchdogs wait for; the control
-#: loop runs SCHED_FIFO above both. A process already nicer keeps its value.
+#: loop runs SCHED_FIFO above both (or nice ``FALLBACK_NICE``). Only for root: the processes
+#: the window starts inherit its value, and without privilege they could not set theirs back.
+#: A process already nicer keeps its value.
 GUI_NICE = 5
 
 
 def _give_way() -> None:
     import os
 
+    if not hasattr(os, "geteuid") or os.geteuid() != 0:
+        return
     try:
         os.setpriority(os.PRIO_PROCESS, 0, max(os.getpriority(os.PRIO_PROCESS, 0), GUI_NICE))
-    except (OSError, AttributeError):
-        pass  # not on this platform: the default priority
+    except OSError:
+        pass  # refused: the default priority
 
 
 def render_scale(text: str) -> float | None:

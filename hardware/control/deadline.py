@@ -32,6 +32,11 @@ import numpy as np
 __all__ = ["DeadlineLoop", "DeadlineStats", "lock_memory", "try_sched_fifo"]
 
 
+#: The nice value a loop takes when SCHED_FIFO is refused (set as is; refused too, it keeps its
+#: own): above the app's perception worker (-5) and window (5).
+FALLBACK_NICE = -10
+
+
 def try_sched_fifo(priority: int) -> tuple[bool, str]:
     """Switch the calling thread to ``SCHED_FIFO`` at ``priority``; never raises.
 
@@ -45,7 +50,12 @@ def try_sched_fifo(priority: int) -> tuple[bool, str]:
         prio = min(max(int(priority), lo), hi)
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
     except (PermissionError, OSError) as exc:
-        return False, f"SCHED_FIFO refused ({exc.__class__.__name__}: {exc}); normal scheduler"
+        why = f"SCHED_FIFO refused ({exc.__class__.__name__}: {exc}); normal scheduler"
+        try:  # then ahead of the perception worker (nice -5) and the window (nice 5) at least
+            os.setpriority(os.PRIO_PROCESS, 0, FALLBACK_NICE)
+        except OSError:
+            return False, why
+        return False, f"{why} at nice {FALLBACK_NICE}"
     return True, f"SCHED_FIFO priority {prio}"
 
 

@@ -31,7 +31,7 @@ from hapticloud.core.errors import RecordingError
 from hapticloud.core.perception.config import CropConfig
 from hapticloud.core.recording import RecordConfig, primitive_to_dict, storage_roi
 
-#: ``nice`` increment of the recorder process: writing gives way to perception and the GUI.
+#: ``nice`` value of the recorder process: writing gives way to perception and the GUI.
 RECORDER_NICE = 10
 _STOP = ("stop",)
 
@@ -184,7 +184,7 @@ def _recorder_main(
 
     settle_numerics(1)
     try:
-        os.nice(RECORDER_NICE)
+        os.setpriority(os.PRIO_PROCESS, 0, RECORDER_NICE)  # as is: not added to the app's
     except OSError:
         pass
     try:
