@@ -180,6 +180,7 @@ class ExoPlant:
         # each substep's solve becomes a product. NumPy's, not scipy's cho_factor: scipy's first
         # call loads its LAPACK wrappers (>10 ms), which at the enable starved the drives.
         inertia_inv = np.linalg.inv(inertia)
+        inertia.setflags(write=False)  # the same array every substep: the patient may cache on it
         hip0 = m.hip_position()
         q = q0
         q_min, q_max = m.q_min, m.q_max

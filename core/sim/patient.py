@@ -200,8 +200,10 @@ class PatientArm:
         else:
             minv_jt = np.linalg.solve(inertia, jacobian.T)
             lam = np.linalg.pinv(jacobian @ minv_jt, rcond=1e-9)  # task-space inertia, guarded
-            # Held by reference: the arrays cannot be freed and their ids reused meanwhile.
-            self._projection = (jacobian, inertia, minv_jt, lam)
+            # Only read-only arrays are remembered (an array changed in place would leave a
+            # stale projection); held by reference, so their ids cannot be reused meanwhile.
+            frozen = not (jacobian.flags.writeable or inertia.flags.writeable)
+            self._projection = (jacobian, inertia, minv_jt, lam) if frozen else None
         return tau - jacobian.T @ (lam @ (minv_jt.T @ tau))
 
 

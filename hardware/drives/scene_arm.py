@@ -109,7 +109,7 @@ class SceneArmFactory:
     overrides: Mapping[str, Any] | None = None
     substeps: int | None = None
     #: The plant's configuration terms once per period (:class:`~hapticloud.core.sim.exo.ExoPlant`'s
-    #: ``frozen_dynamics``): 165 instead of 286 µs a period for the demo, the HIP within 16 µm
+    #: ``frozen_dynamics``): 148 instead of 252 µs a period for the demo, the HIP within 16 µm
     #: of the exact form over 10 s and 0.57 m of travel. The emulated arm runs in real time.
     frozen_dynamics: bool = True
 
