@@ -189,6 +189,8 @@ def quadric_surface(
         result = _quadric_fit(points, hip, rel, d2, camera_axis, narrowed)
         if isinstance(result, str):
             best = best or result
+            if level == 0:
+                break  # no wide fit: the fallback answers (a narrower one alone is not checked)
         elif isinstance(best, str):
             best = result
         elif (
