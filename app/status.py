@@ -122,9 +122,11 @@ class StatusPanel:
         elif fused.disagree:
             text = f"DISAGREE {1e3 * fused.disagreement_m:.1f} mm"
             style, tip = "color:#b35900; font-weight:600;", fused.quality_note
+        elif len(fused.cameras) < 2:
+            text, style, tip = "1 camera", "", fused.quality_note or "one camera in the window"
         else:
             text = f"agree {1e3 * fused.disagreement_m:.1f} mm"
-            style, tip = "", fused.quality_note or "one camera"
+            style, tip = "", fused.quality_note
         two = sum(getattr(cam.estimate, "surfaces", 1) > 1 for cam in snap.cameras)
         if two:
             text += f", {two} crease"  # cameras that saw two surfaces (the nearer taken)

@@ -87,6 +87,10 @@ class HistoryRing:
         return out
 
 
+_NO_CONTEXT = np.empty((0, 3), dtype=np.float32)
+_NO_CONTEXT.setflags(write=False)
+
+
 @dataclass
 class _Receiver:
     """State the receiver thread keeps to compose snapshots (touched by that thread only)."""
@@ -306,7 +310,7 @@ class LiveSource:
         elif previous is not None:
             context = previous.context  # read-only already: shared, not copied
         else:
-            context = np.empty((0, 3), dtype=np.float32)
+            context = _NO_CONTEXT
         state.newest[p.camera] = CameraFrame(
             name=est.camera,
             estimate=est,

@@ -144,7 +144,10 @@ def test_the_status_bar_says_whether_the_cameras_agree(live) -> None:
     assert snap.fused is not None and snap.fused.valid
     label = window.status.labels["fusion"]
     window.status.show(snap, window.view_fps, force=True)
-    assert label.text().startswith(("agree ", "DISAGREE "))
+    assert label.text().startswith(("agree ", "DISAGREE ", "1 camera"))
+    alone = dataclasses.replace(snap.fused, cameras=snap.fused.cameras[:1], disagree=False)
+    window.status.show(dataclasses.replace(snap, fused=alone), 20.0, force=True)
+    assert label.text() == "1 camera"  # nothing to agree with
     fused = dataclasses.replace(
         snap.fused, disagree=True, disagreement_m=0.0042, quality_note="front 4.2 mm farther"
     )
