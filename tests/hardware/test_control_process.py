@@ -241,3 +241,22 @@ def test_a_stalled_machine_slows_the_simulation_instead_of_faulting(sim_clock, f
         assert 0.0 < min(f for f in factors if math.isfinite(f)) < 0.95
     else:
         assert all(math.isnan(f) for f in factors)
+
+
+def test_a_loop_refused_sched_fifo_takes_the_fallback_nice(monkeypatch):
+    """Refused SCHED_FIFO, the loop still runs ahead of the app's perception worker (nice -5)
+    and window (nice 5): nice FALLBACK_NICE, set as is; refused that too, it says only the first."""
+    from hapticloud.hardware.control import deadline
+
+    def refuse(*_args):
+        raise PermissionError("not permitted")
+
+    asked = []
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    monkeypatch.setattr(os, "setpriority", lambda which, who, value: asked.append(value))
+    ok, note = try_sched_fifo(80)
+    assert not ok and asked == [deadline.FALLBACK_NICE] and deadline.FALLBACK_NICE < -5
+    assert note.endswith(f"normal scheduler at nice {deadline.FALLBACK_NICE}")
+    monkeypatch.setattr(os, "setpriority", refuse)
+    ok, note = try_sched_fifo(80)
+    assert not ok and note.endswith("; normal scheduler")
