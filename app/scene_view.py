@@ -112,9 +112,10 @@ _EMPTY = np.zeros((1, 3))
 
 #: The 3D view's render scale under software OpenGL (``auto``): VTK renders 0.75 x 0.75 of the
 #: widget's pixels and the paint stretches them over it. llvmpipe's shading is most of the GUI's
-#: CPU (perf on the demo: 65 %, the JIT-compiled shaders and swrast); the view then keeps 20 fps
-#: on the 2-core machine beside the cameras and the control loop. Sizes of points, lines and
-#: text are scaled to match, so only sharpness changes. A GPU renders at full scale.
+#: CPU (perf on the demo: 65 %, the JIT-compiled shaders and swrast); the first command's view
+#: then runs at 19.6-23.4 fps (12.8 before) on the 2-core machine beside the cameras and the
+#: control loop. Point sizes and line widths follow the scale and text the DPI, so only
+#: sharpness changes. A GPU renders at full scale.
 SOFTWARE_RENDER_SCALE = 0.75
 _SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer")
 
