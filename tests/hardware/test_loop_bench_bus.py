@@ -17,9 +17,17 @@ def test_machine_counters_read_the_kernel() -> None:
 
 def test_bus_bench_reports_ticks_misses_and_the_machine_counters() -> None:
     res = run_bench("impacts", 1.0)
+    enabled = ["ready", "enabled", "bench"]
+    if enabled not in [list(tr) for tr in res["transitions"]] and any(
+        tr[1] == "fault" and "feedback lost" in tr[2] for tr in res["transitions"]
+    ):
+        # A drive's feedback lost for 10 ms before the enable: a stall of the shared 2-core
+        # machine (seen once in a full suite). Once more: a bench that never enables fails again.
+        print("run again after:", res["transitions"])
+        res = run_bench("impacts", 1.0)
     assert res["ticks"] > 600  # 800 Hz for 1 s, less start-up
     # Reached ENABLED (a stall of the shared machine may fault it afterwards, correctly).
-    assert ["ready", "enabled", "bench"] in [list(tr) for tr in res["transitions"]]
+    assert enabled in [list(tr) for tr in res["transitions"]], res["transitions"]
     for key in ("tick_us_p99", "misses_per_10k", "body_us", "breakdown_us"):
         assert key in res
     # The enabled ticks apart; the answers read ahead of the deadline; the deferred work counted.
