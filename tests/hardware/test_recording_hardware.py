@@ -33,21 +33,22 @@ def test_a_hardware_session_records_and_replays_exactly(tmp_path: Path) -> None:
     assert summary["identical"] == summary["with_recorded_estimate"] == summary["frames"]
 
 
-def _feedback_faults(rep: dict) -> list:
-    return [t for t in rep["session"]["transitions"] if t[2] == "fault" and "feedback lost" in t[3]]
+def _faults(rep: dict) -> list:
+    return [t for t in rep["session"]["transitions"] if t[2] == "fault"]
 
 
 def test_a_full_disk_stops_the_recording_not_the_session(tmp_path: Path) -> None:
     path = tmp_path / "full.mcap"
     rep = run_session("impacts", None, 2.5, record=str(path), record_limit_bytes=1_000_000)
-    if not rep["enabled_ticks"] > 1800 and _feedback_faults(rep):
-        # A drive's feedback lost for 10 ms on this shared 2-core machine (it happens under load,
-        # recording or not: the e2e tests skip such runs with the evidence). Once more: a
-        # recorder that held the loop up would do it again.
-        print("run again after:", _feedback_faults(rep))
+    if not rep["enabled_ticks"] > 1800 and _faults(rep):
+        # A fault from a stall of this shared 2-core machine (the master's feedback watchdog, or
+        # a drive's own command timeout; it happens under load, recording or not: the e2e tests
+        # skip such runs with the evidence). Once more: a recorder that held the loop up would
+        # fault it again.
+        print("run again after:", _faults(rep))
         path.unlink(missing_ok=True)
         rep = run_session("impacts", None, 2.5, record=str(path), record_limit_bytes=1_000_000)
-    assert rep["reached_enabled"] and rep["enabled_ticks"] > 1800, rep["session"]  # it went on
+    assert rep["reached_enabled"] and rep["enabled_ticks"] > 1800, _faults(rep)  # it went on
     assert "No space left on device" in rep["recording"]["error"]
     assert rep["recording"]["alarms"]
     with Recording.open(path) as rec:
