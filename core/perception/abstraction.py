@@ -41,6 +41,10 @@ METHODS = ("paper", "quadric", "nearest")
 # ----- parameters --------------------------------------------------------------------------------
 
 
+#: The narrowest Gaussian bandwidth a fit may use (m), after its narrowings too.
+MIN_BANDWIDTH_M = 0.005
+
+
 @dataclass(frozen=True)
 class QuadricConfig(StageConfig):
     """The curvature-aware estimator (``method = "quadric"``, :mod:`.curvature`)."""
@@ -51,7 +55,11 @@ class QuadricConfig(StageConfig):
         doc="surface model; auto picks the simplest the points support (BIC)",
     )
     bandwidth_m: float = param(
-        0.035, lo=0.005, hi=0.2, unit="m", doc="Gaussian spatial weight around the closest point"
+        0.035,
+        lo=MIN_BANDWIDTH_M,
+        hi=0.2,
+        unit="m",
+        doc="Gaussian spatial weight around the closest point",
     )
     n_refits: int = param(2, lo=1, hi=10, doc="fits, each re-centred on the previous closest point")
     shape_iterations: int = param(
@@ -112,6 +120,14 @@ class QuadricConfig(StageConfig):
         "inside it); the better one answers",
     )
     narrowings: int = param(1, lo=0, hi=3, doc="how many times the bandwidth may be halved")
+
+    def check(self) -> None:
+        narrowest = self.bandwidth_m / 2**self.narrowings
+        if narrowest < MIN_BANDWIDTH_M:
+            raise ConfigError(
+                f"narrowings = {self.narrowings}: bandwidth_m {self.bandwidth_m * 1e3:g} mm halved "
+                f"that often is {narrowest * 1e3:.2f} mm, below {MIN_BANDWIDTH_M * 1e3:g} mm"
+            )
 
 
 @dataclass(frozen=True)

@@ -181,11 +181,17 @@ def quadric_surface(
     rel = points[:: max(1, n // qc.max_points)] - hip
     d2 = np.einsum("ij,ij->i", rel, rel)
     best: SurfaceFit | str = ""
-    for level in range(qc.narrowings + 1):
-        # An edge or a step inside the bandwidth is smoothed over and the fit loses quality:
-        # a narrower bandwidth models only the surface near the closest point.
+    # An edge or a step inside the bandwidth is smoothed over and the fit loses quality: a
+    # narrower bandwidth models only the surface near the closest point. Each narrower level is
+    # tried first from the patch around the nearest point alone (a HIP equally near two bodies
+    # has both in its shell of nearest points), then from that whole shell.
+    tries = [(0, False)] + [
+        (level, seeded) for level in range(1, qc.narrowings + 1) for seeded in (True, False)
+    ]
+    for level, seeded in tries:
         narrowed = qc if level == 0 else _narrowed(qc, level)
-        result = _quadric_fit(points, hip, rel, d2, camera_axis, narrowed)
+        wide = qc if level > 0 else None
+        result = _quadric_fit(points, hip, rel, d2, camera_axis, narrowed, seeded, wide)
         if isinstance(result, str):
             best = best or result
             if level == 0:
@@ -210,7 +216,7 @@ def quadric_surface(
 def _narrowed(qc: QuadricConfig, level: int) -> QuadricConfig:
     """``qc`` with its bandwidth halved ``level`` times; built once per configuration (building
     one validates every field: ~130 us, on every low-quality frame otherwise)."""
-    return dataclasses.replace(qc, bandwidth_m=qc.bandwidth_m / 2**level)
+    return dataclasses.replace(qc, bandwidth_m=qc.bandwidth_m / 2**level, narrowings=0)
 
 
 def _quadric_fit(
@@ -220,11 +226,22 @@ def _quadric_fit(
     d2: FloatArray,
     camera_axis: FloatArray,
     qc: QuadricConfig,
+    seeded: bool = False,
+    wide: QuadricConfig | None = None,
 ) -> SurfaceFit | str:
-    """Steps 1-4 at ``qc.bandwidth_m``: the estimate, or a string saying why there is none."""
-    fit = _fit_surface(rel, d2, camera_axis, qc)
+    """Steps 1-4 at ``qc.bandwidth_m``: the estimate, or a string saying why there is none.
+
+    ``wide``: the configuration this one narrows (``None`` for the wide fit itself); a narrower
+    fit does not extrapolate farther than its bandwidth. ``seeded``: start from the patch around
+    the nearest point only, and answer only if the points that fit leaves out make no nearer
+    surface at the ``wide`` configuration."""
+    fit = _fit_surface(rel, d2, camera_axis, qc, seeded)
     if isinstance(fit, str):
         return fit
+    if seeded and wide is not None:
+        nearer = _rest_nearer(fit, rel, d2, camera_axis, qc, wide)
+        if nearer:
+            return nearer
     surfaces, note = 1, ""
     if qc.second_surface:
         fit, surfaces, note = _nearer_surface(fit, points - hip, rel, d2, camera_axis, qc)
@@ -235,6 +252,13 @@ def _quadric_fit(
     gap_to_data = float(np.sqrt(np.min(np.einsum("ij,ij->i", off, off))))
     if gap_to_data > qc.max_extrapolation_m:
         return f"closest point {gap_to_data:.3f} m from the data"
+    if wide is not None and gap_to_data > qc.bandwidth_m:
+        # A narrower fit models the surface within about one bandwidth of its points: across a
+        # wider hole (the end effector hides the surface under the HIP) it is a guess.
+        return (
+            f"narrower fit's closest point {gap_to_data * 1e3:.1f} mm from the data "
+            f"> its bandwidth {qc.bandwidth_m * 1e3:.1f} mm"
+        )
     inlier = robust > 0.5
     bw = qc.bandwidth_m
     surround = _surround(off[inlier][:: max(1, len(off) // qc.coarse_points)], normal, bw)
@@ -246,16 +270,31 @@ def _quadric_fit(
     )
 
 
+#: The seeded start's patch: points within this many bandwidths of the nearest point.
+_SEED_PATCH_BANDWIDTHS = 1.0
+
+
 def _fit_surface(
-    rel: FloatArray, d2: FloatArray, camera_axis: FloatArray, qc: QuadricConfig
+    rel: FloatArray,
+    d2: FloatArray,
+    camera_axis: FloatArray,
+    qc: QuadricConfig,
+    seeded: bool = False,
 ) -> _Fit | str:
     """Steps 1-3 on HIP-relative points ``rel`` (m) with squared distances ``d2``; a string
-    says what failed."""
+    says what failed. ``seeded``: the initial plane from the nearest point's patch only."""
     bw = qc.bandwidth_m
     # 1. Initial plane through the points near the nearest ones (a few skipped: flying pixels).
     k = min(len(rel) - 1, max(2, len(rel) // 200))
     d_near = float(np.sqrt(np.partition(d2, k)[k]))
-    cap = rel[d2 < (d_near + bw) ** 2]
+    cap_mask = d2 < (d_near + bw) ** 2
+    if seeded:
+        # Only the patch around the nearest points: where two surfaces are equally near the HIP
+        # (a medial point between two bodies) the shell of nearest points holds both.
+        off_seed = rel - rel[int(np.argpartition(d2, k)[k])]
+        patch = _SEED_PATCH_BANDWIDTHS * bw
+        cap_mask &= np.einsum("ij,ij->i", off_seed, off_seed) < patch * patch
+    cap = rel[cap_mask]
     start = _initial_plane(cap[:: max(1, len(cap) // qc.coarse_points)])
     if start is None:
         return "no plane through the nearest points"
@@ -298,6 +337,42 @@ def _fit_surface(
         origin = origin_new
         normal = _face_camera(normal_new, camera_axis, -origin)
     return _Fit(origin, normal, model, scale, inliers, cand, robust, frame, frame_origin, coef)
+
+
+def _rest_nearer(
+    fit: _Fit,
+    rel: FloatArray,
+    d2: FloatArray,
+    camera_axis: FloatArray,
+    qc: QuadricConfig,
+    wide: QuadricConfig,
+) -> str:
+    """Why a fit from the nearest patch must not answer ("" if it may).
+
+    A fit started from one patch explains that patch; the other points (another body, the rest
+    of a body whose nearest part the end effector hides) are fitted as one surface at the
+    ``wide`` bandwidth. If that surface comes nearer the HIP than the patch's, the patch is not
+    the nearest surface: the narrow fit gives way (what is not seen may be nearer).
+    """
+    bw = qc.bandwidth_m
+    off = rel - fit.frame_origin
+    res = local_quadric_distance(off @ fit.frame * (1.0 / bw), fit.coef) * bw
+    near = np.einsum("ij,ij->i", off, off) < (_SUPPORT_SIGMAS * bw) ** 2
+    noise = max(fit.scale, qc.noise_floor_m)
+    rest = ~(near & (np.abs(res) < qc.second_surface_sigmas * noise))
+    if int(np.count_nonzero(rest)) < qc.min_points:
+        return ""
+    other = _fit_surface(rel[rest], d2[rest], camera_axis, wide)
+    if isinstance(other, str):
+        return ""
+    dist = float(np.sqrt(fit.origin @ fit.origin))
+    dist_other = float(np.sqrt(other.origin @ other.origin))
+    if dist_other < dist - qc.second_surface_min_m:
+        return (
+            f"the points beside the nearest patch make a surface "
+            f"{(dist - dist_other) * 1e3:.1f} mm nearer"
+        )
+    return ""
 
 
 #: A narrower fit answers only if its residual scale is below this share of the wider one's.

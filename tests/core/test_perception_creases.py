@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
-from hapticloud.core.perception import AbstractionConfig, estimate_surface
+from hapticloud.core.errors import ConfigError
+from hapticloud.core.perception import AbstractionConfig, curvature, estimate_surface
 from hapticloud.core.sim import contact_bench_scenes
 
 
@@ -110,3 +113,65 @@ def test_noise_alone_does_not_narrow_the_fit() -> None:
     fit = estimate_surface(cloud, hip, [0.0, 0.0, -1.0])
     assert wide.quality < 0.5  # the noise is 8x the floor: a narrower fit is tried
     assert np.array_equal(fit.centroid, wide.centroid) and fit.quality == wide.quality
+
+
+# Frames of the demo (`hapticloud run demo`, the estimator's input after stages A-D, with the
+# truth): "medial" and "hidden", the hand between the torso's top edge and the chin, about 70 mm
+# from both; "hole", the hand on the cheek hiding the 28 mm around the closest point (the front
+# camera decimated 8x, `bench safety`).
+_SWITCH_FRAMES = Path(__file__).parent / "data" / "demo_body_switch_frames.npz"
+
+
+def _switch_frame(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    data = np.load(_SWITCH_FRAMES)
+    return (
+        data[f"{name}_points"],
+        data[f"{name}_hip"],
+        data[f"{name}_axis"],
+        float(data[f"{name}_true_distance"]),
+    )
+
+
+def test_a_hip_equally_near_two_bodies_gets_one_of_them_not_a_blend() -> None:
+    points, hip, axis, truth = _switch_frame("medial")
+    wide = estimate_surface(
+        points, hip, axis, AbstractionConfig().replace_path("quadric.narrowings", 0)
+    )
+    assert wide.quality < 0.3  # the shell of nearest points holds both bodies: a blend
+    fit = estimate_surface(points, hip, axis)
+    assert fit.valid and fit.quality >= 0.5  # the narrower fit from the nearest patch
+    err = fit.d_proj(hip, 0.0) - truth
+    assert -1e-3 < err < 0.6e-3
+
+
+def test_the_nearest_patch_gives_way_when_the_other_points_make_a_nearer_surface(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The hand hides the torso's edge from this camera: the nearest points it sees are the
+    # chin's, 11 mm farther than the edge; the torso's faces around the edge come nearer.
+    points, hip, axis, truth = _switch_frame("hidden")
+    fit = estimate_surface(points, hip, axis)
+    assert not (fit.valid and fit.quality >= 0.5 and fit.d_proj(hip, 0.0) - truth > 0.5e-3)
+    monkeypatch.setattr(curvature, "_rest_nearer", lambda *args: "")
+    unchecked = estimate_surface(points, hip, axis)
+    assert unchecked.quality >= 0.5 and unchecked.d_proj(hip, 0.0) - truth > 5e-3
+
+
+def test_a_narrower_fit_does_not_bridge_a_hole_wider_than_its_bandwidth() -> None:
+    points, hip, axis, truth = _switch_frame("hole")
+    wide_cfg = AbstractionConfig().replace_path("quadric.narrowings", 0)
+    wide = estimate_surface(points, hip, axis, wide_cfg)
+    assert wide.quality < 0.5 and wide.d_proj(hip, 0.0) < truth  # low quality, safe side
+    narrow = estimate_surface(
+        points, hip, axis, wide_cfg.replace_path("quadric.bandwidth_m", 0.0175)
+    )
+    assert narrow.quality > wide.quality and narrow.d_proj(hip, 0.0) - truth > 3e-3  # a guess
+    fit = estimate_surface(points, hip, axis)
+    assert np.array_equal(fit.centroid, wide.centroid) and fit.quality == wide.quality
+
+
+def test_narrowings_that_would_go_below_the_narrowest_bandwidth_are_refused() -> None:
+    cfg = AbstractionConfig().replace_path("quadric.narrowings", 2)  # 35 mm -> 8.75 mm: fine
+    assert cfg.quadric.narrowings == 2
+    with pytest.raises(ConfigError, match=r"quadric\.narrowings = 3: .*4\.38 mm, below 5 mm"):
+        AbstractionConfig().replace_path("quadric.narrowings", 3)
