@@ -346,7 +346,7 @@ def build_patient(scene: Scene, q0: FloatArray, hip0: FloatArray) -> PatientArm 
     if not waypoints:
         waypoints = [Waypoint(0.0, hip0.copy())]
     return PatientArm(
-        IntentScript(waypoints),
+        IntentScript(waypoints, cfg.repeat_s, repeat_name="patient.repeat_s"),
         mass_kg=cfg.mass_kg,
         stiffness_n_per_m=cfg.stiffness_n_per_m,
         damping_n_s_per_m=cfg.damping_n_s_per_m,

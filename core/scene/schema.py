@@ -339,6 +339,14 @@ class PatientSpec(StageConfig):
     frame: str = param(
         "hip0", choices=("hip0", "world"), doc="waypoints relative to the initial HIP, or world"
     )
+    repeat_s: float = param(
+        0.0,
+        lo=0.0,
+        hi=3600.0,
+        unit="s",
+        doc="play the waypoints again every this many seconds, from the first one's time (0: "
+        "once, then hold the last); the last waypoint must return to the first",
+    )
 
 
 @dataclass(frozen=True)

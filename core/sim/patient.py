@@ -15,7 +15,8 @@ at the HIP alone.
 
 The intent is a list of waypoints joined by straight segments, each with its own time law:
 ``"linear"`` (constant speed: a direct impact at a set speed) or ``"min_jerk"`` (a smooth
-reaching movement). The intent holds the first waypoint before its time and the last after.
+reaching movement). The intent holds the first waypoint before its time and the last after, or,
+with a repeat period, plays the waypoints again every period (a demo that goes on).
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ from ..validation import as_finite_scalar, as_vector3
 FloatArray = NDArray[np.float64]
 
 PROFILES = ("linear", "min_jerk")
+#: A repeated intent's last waypoint must be this close to its first (m).
+_RETURN_TOLERANCE_M = 1e-3
 
 
 class Waypoint(NamedTuple):
@@ -56,6 +59,10 @@ class IntentScript:
     ----------
     waypoints
         At least one; times strictly increasing (s), positions in m.
+    repeat_s, repeat_name
+        0: play once. Otherwise the waypoints play again every ``repeat_s`` seconds from the first
+        one's time; the period must cover them and the last must return to the first position
+        (the intent never jumps). ``repeat_name`` names it in errors.
 
     Examples
     --------
@@ -65,7 +72,9 @@ class IntentScript:
     ([0.25, 0.0, 0.0], [0.5, 0.0, 0.0])
     """
 
-    def __init__(self, waypoints: Sequence[Waypoint]) -> None:
+    def __init__(
+        self, waypoints: Sequence[Waypoint], repeat_s: float = 0.0, repeat_name: str = "repeat_s"
+    ) -> None:
         if not waypoints:
             raise InputError("waypoints: the intent needs at least one waypoint")
         times, points, profiles = [], [], []
@@ -85,6 +94,22 @@ class IntentScript:
         self.times = np.array(times)
         self.points = np.array(points)
         self.profiles = tuple(profiles)
+        self.repeat_s = as_finite_scalar(repeat_s, repeat_name)
+        if self.repeat_s < 0.0:
+            raise InputError(f"{repeat_name} = {self.repeat_s}: must be 0 (once) or a period (s)")
+        if self.repeat_s > 0.0:
+            span = times[-1] - times[0]
+            if self.repeat_s < span:
+                raise InputError(
+                    f"{repeat_name} = {self.repeat_s:g}: shorter than the waypoints it repeats "
+                    f"({span:g} s)"
+                )
+            gap = float(np.linalg.norm(self.points[-1] - self.points[0]))
+            if gap > _RETURN_TOLERANCE_M:
+                raise InputError(
+                    f"{repeat_name} = {self.repeat_s:g}: the last waypoint is {gap * 1e3:.1f} mm "
+                    "from the first; a repeated intent must return to where it starts"
+                )
 
     @property
     def end_s(self) -> float:
@@ -94,6 +119,8 @@ class IntentScript:
     def _segment(self, t: float) -> tuple[int, float, float]:
         """Segment index ``i`` (from waypoint i-1 to i), fraction and d(fraction)/dt at ``t``."""
         times = self.times
+        if self.repeat_s > 0.0 and t > times[0]:
+            t = float(times[0]) + math.fmod(t - float(times[0]), self.repeat_s)
         if t <= times[0] or times.shape[0] == 1:
             return 0, 1.0, 0.0
         if t >= times[-1]:

@@ -43,6 +43,33 @@ def test_intent_linear_segment_has_the_asked_speed_and_min_jerk_ends_at_rest() -
         IntentScript([Waypoint(1.0, a), Waypoint(1.0, b)])
 
 
+def test_a_repeated_intent_plays_again_every_period_and_must_return_to_its_start() -> None:
+    a, b = np.zeros(3), np.array([0.1, 0.0, 0.0])
+    waypoints = [Waypoint(0.5, a), Waypoint(1.5, b), Waypoint(2.5, a)]
+    once = IntentScript(waypoints)
+    script = IntentScript(waypoints, repeat_s=3.0)
+    for t in (0.0, 0.7, 1.0, 2.2, 2.9):
+        np.testing.assert_allclose(script.position(t), once.position(t))
+        for k in (1, 7, 1000):  # every period, and far on (no drift of the phase)
+            np.testing.assert_allclose(script.position(t + 3.0 * k), once.position(t), atol=1e-9)
+            np.testing.assert_allclose(script.velocity(t + 3.0 * k), once.velocity(t), atol=1e-9)
+    np.testing.assert_allclose(once.position(4.0), a)  # once: the last waypoint is held
+    assert np.linalg.norm(script.velocity(4.0)) > 0.05  # repeated: on its way again
+    with pytest.raises(InputError, match=r"repeat_s = 1.5: shorter than the waypoints .*2 s"):
+        IntentScript(waypoints, repeat_s=1.5)
+    with pytest.raises(InputError, match=r"patient.repeat_s = 3: the last waypoint is 100.0 mm"):
+        IntentScript(waypoints[:2], repeat_s=3.0, repeat_name="patient.repeat_s")
+    with pytest.raises(InputError, match="repeat_s = -1"):
+        IntentScript(waypoints, repeat_s=-1.0)
+
+
+def test_the_demo_repeats_its_reach_every_run_length() -> None:
+    scene = load_scene("demo")
+    assert scene.config.patient.repeat_s == scene.config.scene.duration_s
+    with pytest.raises(InputError, match=r"patient\.repeat_s = 5: shorter than"):
+        ClosedLoopSim(scene.with_overrides({"patient.repeat_s": 5.0}))
+
+
 def test_posture_torque_does_not_accelerate_the_hip(model: RobotModel) -> None:
     q = model.q_home + 0.1
     model.update(q, np.zeros(6))
