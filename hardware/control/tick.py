@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 from hapticloud.core.fusion import SurfaceFusion
+from hapticloud.core.haptics.unknown import SpaceState
 from hapticloud.core.loop import admit, build_controller
 
 from ..drives.protocol import DriveTarget
@@ -249,7 +250,9 @@ class ControlTick:
         state = self.state = self.machine.state
         tau, target = self._torque(state, level, res, feedback)
         d_now = self.d_now = float(res.d_proj_m)
-        if d_now < self.min_d and state is _ENABLED:
+        # The margin to the fused surface the tick knew; a held surface is grown toward the HIP
+        # on purpose (unseen motion of the patient): its d_proj is a precaution, not a margin.
+        if d_now < self.min_d and state is _ENABLED and res.space is SpaceState.KNOWN:
             self.min_d = d_now
         self.ticks += 1
         return tau, target

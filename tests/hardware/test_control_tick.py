@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from hapticloud.core.control import ControllerConfig
+from hapticloud.core.haptics.unknown import SpaceState
 from hapticloud.core.perception import SurfaceEstimate
 from hapticloud.core.scene import load_scene
 from hapticloud.core.scene.assembly import assemble
@@ -228,6 +229,20 @@ def test_a_rejected_estimate_feeds_the_watchdog_but_not_the_fusion(scene):
     assert not tick.fusion.sample(0.5).valid
     assert tick.take_estimates([estimate(tick, 0.6, seq=2)])
     assert tick.fusion.sample(0.6).valid
+
+
+def test_min_distance_counts_the_known_surface_not_the_held_one(scene):
+    tick = make_tick(scene)
+    tick.take_estimates([estimate(tick, 0.0)])
+    tick.step(0.0, feedback(scene))
+    tick.step(0.01, feedback(scene), [Enable()])
+    assert tick.result.space is SpaceState.KNOWN and tick.min_d == tick.d_now
+    known = tick.min_d
+    # No estimate since: at 0.2 s the guard holds the surface, grown toward the HIP by its age.
+    tick.step(0.2, feedback(scene))
+    assert tick.result.space is SpaceState.HOLDING
+    assert tick.d_now < known - 5e-3  # the precaution ...
+    assert tick.min_d == known  # ... is not a margin the panel reports
 
 
 def test_min_distance_counts_only_while_enabled_and_faults_go_to_the_emulator(scene):
