@@ -31,7 +31,7 @@ class PerceptionConfig(StageConfig):
         True, doc="attach the kept and filled points to each estimate (for the app; costs copies)"
     )
     max_spacing_m: float = param(
-        0.012,
+        0.010,
         lo=0.001,
         hi=0.1,
         unit="m",

@@ -226,6 +226,11 @@ class CameraPipeline:
                     "there was removed with the robot and may be nearer"
                 )
                 return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
+        if fit.valid and not float((h - centroid) @ fit.normal) > 0.0:
+            # Any method: a normal away from the HIP puts the HIP behind the surface (d_proj below
+            # -r_hip), and a constraint on that plane would push the HIP toward the body.
+            reason = "the estimated normal points away from the HIP (the HIP behind the surface)"
+            return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
         if not fit.valid:
             reason = fit.reason
             free = 0.0

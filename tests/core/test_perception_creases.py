@@ -7,7 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hapticloud.core.errors import ConfigError
-from hapticloud.core.perception import AbstractionConfig, curvature, estimate_surface
+from hapticloud.core.perception import (
+    AbstractionConfig,
+    CameraPipeline,
+    PerceptionConfig,
+    curvature,
+    estimate_surface,
+)
 from hapticloud.core.sim import contact_bench_scenes
 
 
@@ -175,3 +181,19 @@ def test_narrowings_that_would_go_below_the_narrowest_bandwidth_are_refused() ->
     assert cfg.quadric.narrowings == 2
     with pytest.raises(ConfigError, match=r"quadric\.narrowings = 3: .*4\.38 mm, below 5 mm"):
         AbstractionConfig().replace_path("quadric.narrowings", 3)
+
+
+def test_a_normal_pointing_away_from_the_hip_is_never_an_estimate() -> None:
+    # The HIP "behind" a plane as its camera sees it: the fit's normal faces the camera, away
+    # from the HIP (at a crease, a patch seen edge-on does this): d_proj would be
+    # -(distance + r_hip), and the constraint would push the HIP into the body.
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-0.1, 0.1, size=(5000, 2))
+    cloud = np.column_stack((xy, rng.normal(0.0, 0.0005, len(xy))))
+    hip, axis = np.array([0.0, 0.0, -0.05]), [0.0, 0.0, -1.0]
+    fit = estimate_surface(cloud, hip, axis)
+    assert fit.valid and fit.normal[2] > 0.9  # the fit alone faces the camera
+    for method in ("quadric", "paper", "nearest"):
+        config = PerceptionConfig().replace_path("abstraction.method", method)
+        est = CameraPipeline(config).process(cloud, hip, axis, t=0.0)
+        assert not est.valid and "points away from the HIP" in est.reason, method
