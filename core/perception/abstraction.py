@@ -119,15 +119,12 @@ class QuadricConfig(StageConfig):
         doc="a fit of lower quality is tried again with half the bandwidth (an edge or a step "
         "inside it); the better one answers",
     )
-    narrowings: int = param(1, lo=0, hi=3, doc="how many times the bandwidth may be halved")
-
-    def check(self) -> None:
-        narrowest = self.bandwidth_m / 2**self.narrowings
-        if narrowest < MIN_BANDWIDTH_M:
-            raise ConfigError(
-                f"narrowings = {self.narrowings}: bandwidth_m {self.bandwidth_m * 1e3:g} mm halved "
-                f"that often is {narrowest * 1e3:.2f} mm, below {MIN_BANDWIDTH_M * 1e3:g} mm"
-            )
+    narrowings: int = param(
+        1,
+        lo=0,
+        hi=3,
+        doc="how many times the bandwidth may be halved (never below the narrowest, 5 mm)",
+    )
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,13 @@ from ..geometry.quadric import (
     refine_quadric_heights,
 )
 from ..geometry.rotations import EDGE_ON_COS, frame_from_unit_normal
-from .abstraction import AbstractionConfig, QuadricConfig, SurfaceFit, concentric_shells
+from .abstraction import (
+    MIN_BANDWIDTH_M,
+    AbstractionConfig,
+    QuadricConfig,
+    SurfaceFit,
+    concentric_shells,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -185,9 +191,8 @@ def quadric_surface(
     # narrower bandwidth models only the surface near the closest point. Each narrower level is
     # tried first from the patch around the nearest point alone (a HIP equally near two bodies
     # has both in its shell of nearest points), then from that whole shell.
-    tries = [(0, False)] + [
-        (level, seeded) for level in range(1, qc.narrowings + 1) for seeded in (True, False)
-    ]
+    levels = [lv for lv in range(1, qc.narrowings + 1) if qc.bandwidth_m / 2**lv >= MIN_BANDWIDTH_M]
+    tries = [(0, False)] + [(level, seeded) for level in levels for seeded in (True, False)]
     for level, seeded in tries:
         narrowed = qc if level == 0 else _narrowed(qc, level)
         wide = qc if level > 0 else None
@@ -216,7 +221,7 @@ def quadric_surface(
 def _narrowed(qc: QuadricConfig, level: int) -> QuadricConfig:
     """``qc`` with its bandwidth halved ``level`` times; built once per configuration (building
     one validates every field: ~130 us, on every low-quality frame otherwise)."""
-    return dataclasses.replace(qc, bandwidth_m=qc.bandwidth_m / 2**level, narrowings=0)
+    return dataclasses.replace(qc, bandwidth_m=qc.bandwidth_m / 2**level)
 
 
 def _quadric_fit(

@@ -34,8 +34,8 @@ from ..validation import as_finite_scalar, as_vector3
 FloatArray = NDArray[np.float64]
 
 PROFILES = ("linear", "min_jerk")
-#: A repeated intent's last waypoint must be this close to its first (m).
-_RETURN_TOLERANCE_M = 1e-3
+#: A repeated intent's last waypoint must be this close to its first (m): the same point.
+_RETURN_TOLERANCE_M = 1e-6
 
 
 class Waypoint(NamedTuple):
@@ -119,7 +119,7 @@ class IntentScript:
     def _segment(self, t: float) -> tuple[int, float, float]:
         """Segment index ``i`` (from waypoint i-1 to i), fraction and d(fraction)/dt at ``t``."""
         times = self.times
-        if self.repeat_s > 0.0 and t > times[0]:
+        if self.repeat_s > 0.0 and times[0] < t < math.inf:
             t = float(times[0]) + math.fmod(t - float(times[0]), self.repeat_s)
         if t <= times[0] or times.shape[0] == 1:
             return 0, 1.0, 0.0

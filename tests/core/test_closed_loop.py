@@ -54,6 +54,7 @@ def test_a_repeated_intent_plays_again_every_period_and_must_return_to_its_start
             np.testing.assert_allclose(script.position(t + 3.0 * k), once.position(t), atol=1e-9)
             np.testing.assert_allclose(script.velocity(t + 3.0 * k), once.velocity(t), atol=1e-9)
     np.testing.assert_allclose(once.position(4.0), a)  # once: the last waypoint is held
+    np.testing.assert_allclose(script.position(np.inf), a)  # no phase at infinity: held too
     assert np.linalg.norm(script.velocity(4.0)) > 0.05  # repeated: on its way again
     with pytest.raises(InputError, match=r"repeat_s = 1.5: shorter than the waypoints .*2 s"):
         IntentScript(waypoints, repeat_s=1.5)
@@ -63,9 +64,10 @@ def test_a_repeated_intent_plays_again_every_period_and_must_return_to_its_start
         IntentScript(waypoints, repeat_s=-1.0)
 
 
-def test_the_demo_repeats_its_reach_every_run_length() -> None:
+def test_a_repeated_scene_is_checked_where_it_loads() -> None:
     scene = load_scene("demo")
-    assert scene.config.patient.repeat_s == scene.config.scene.duration_s
+    assert scene.config.patient.repeat_s == 0.0  # not by default yet (see the scene file)
+    ClosedLoopSim(scene.with_overrides({"patient.repeat_s": scene.config.scene.duration_s}))
     with pytest.raises(InputError, match=r"patient\.repeat_s = 5: shorter than"):
         ClosedLoopSim(scene.with_overrides({"patient.repeat_s": 5.0}))
 

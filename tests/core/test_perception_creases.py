@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hapticloud.core.errors import ConfigError
 from hapticloud.core.perception import (
     AbstractionConfig,
     CameraPipeline,
@@ -176,11 +175,18 @@ def test_a_narrower_fit_does_not_bridge_a_hole_wider_than_its_bandwidth() -> Non
     assert np.array_equal(fit.centroid, wide.centroid) and fit.quality == wide.quality
 
 
-def test_narrowings_that_would_go_below_the_narrowest_bandwidth_are_refused() -> None:
-    cfg = AbstractionConfig().replace_path("quadric.narrowings", 2)  # 35 mm -> 8.75 mm: fine
-    assert cfg.quadric.narrowings == 2
-    with pytest.raises(ConfigError, match=r"quadric\.narrowings = 3: .*4\.38 mm, below 5 mm"):
-        AbstractionConfig().replace_path("quadric.narrowings", 3)
+def test_narrowings_stop_at_the_narrowest_bandwidth() -> None:
+    # 35 mm halved 3 times would be 4.4 mm: the third level is skipped (and nothing crashes);
+    # a bandwidth set under 10 mm with one narrowing fits at that bandwidth alone.
+    points, hip, axis, _ = _switch_frame("medial")
+    three = AbstractionConfig().replace_path("quadric.narrowings", 3)
+    two = AbstractionConfig().replace_path("quadric.narrowings", 2)
+    a, b = estimate_surface(points, hip, axis, three), estimate_surface(points, hip, axis, two)
+    assert np.array_equal(a.centroid, b.centroid) and a.quality == b.quality
+    narrow = AbstractionConfig().replace_path("quadric.bandwidth_m", 0.008)
+    alone = narrow.replace_path("quadric.narrowings", 0)
+    c, d = estimate_surface(points, hip, axis, narrow), estimate_surface(points, hip, axis, alone)
+    assert np.array_equal(c.centroid, d.centroid) and c.quality == d.quality
 
 
 def test_a_normal_pointing_away_from_the_hip_is_never_an_estimate() -> None:
