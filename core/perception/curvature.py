@@ -275,6 +275,12 @@ def _quadric_fit(
     )
 
 
+def _residual_m(fit: _Fit, pts: FloatArray, bw: float) -> FloatArray:
+    """Signed distance (m, along the fit's local z) of HIP-relative points ``pts`` from the
+    fitted surface at bandwidth ``bw``: positive on the HIP's side."""
+    return local_quadric_distance((pts - fit.frame_origin) @ fit.frame * (1.0 / bw), fit.coef) * bw
+
+
 #: The seeded start's patch: points within this many bandwidths of the nearest point.
 _SEED_PATCH_BANDWIDTHS = 1.0
 
@@ -361,7 +367,7 @@ def _rest_nearer(
     """
     bw = qc.bandwidth_m
     off = rel - fit.frame_origin
-    res = local_quadric_distance(off @ fit.frame * (1.0 / bw), fit.coef) * bw
+    res = _residual_m(fit, rel, bw)
     near = np.einsum("ij,ij->i", off, off) < (_SUPPORT_SIGMAS * bw) ** 2
     noise = max(fit.scale, qc.noise_floor_m)
     rest = ~(near & (np.abs(res) < qc.second_surface_sigmas * noise))
@@ -400,8 +406,7 @@ def _tighten(fit: _Fit, noise: float, camera_axis: FloatArray, qc: QuadricConfig
     scale = max(noise, qc.noise_floor_m)
     for _ in range(_TIGHT_REFITS):
         off = fit.cand - fit.frame_origin
-        res = local_quadric_distance(off @ fit.frame * (1.0 / bw), fit.coef) * bw
-        robust = _robust_weights(res, scale, qc)
+        robust = _robust_weights(_residual_m(fit, fit.cand, bw), scale, qc)
         step = _refit(fit.cand, robust, fit.origin, fit.normal, models, qc)
         if isinstance(step, str):
             return step
@@ -460,10 +465,10 @@ def _nearer_surface(
         fit = tight
         dist1 = float(np.sqrt(fit.origin @ fit.origin))
     bw = qc.bandwidth_m
-    res = local_quadric_distance((every - fit.frame_origin) @ fit.frame * (1.0 / bw), fit.coef)
+    res = _residual_m(fit, every, bw)
     # The other surface lies on the HIP's side of the fit (the fit rejected it, or ran between
     # the two) and, where it matters, nearer the HIP than the first surface's closest point.
-    other = (res * bw > qc.second_surface_sigmas * noise) & (d2_every < dist1 * dist1)
+    other = (res > qc.second_surface_sigmas * noise) & (d2_every < dist1 * dist1)
     n_other = int(np.count_nonzero(other))
     second = None
     if n_other >= qc.min_points:
@@ -476,12 +481,8 @@ def _nearer_surface(
             # Segment once more: each point to the surface that explains it better; the second
             # surface refitted on its own points only (the first pass's set holds some of the
             # first surface where the two meet).
-            res2 = local_quadric_distance(
-                (every - second.frame_origin) @ second.frame * (1.0 / bw), second.coef
-            )
-            mine = (np.abs(res2) < np.abs(res)) & (
-                np.abs(res2) * bw < qc.second_surface_sigmas * noise
-            )
+            res2 = _residual_m(second, every, bw)
+            mine = (np.abs(res2) < np.abs(res)) & (np.abs(res2) < qc.second_surface_sigmas * noise)
             n_mine = int(np.count_nonzero(mine))
             if n_mine >= qc.min_points:
                 step = max(1, n_mine // qc.max_points)
