@@ -181,6 +181,24 @@ class NestedQuadricLSQ:
         coef[:k] = sol / self.norms[:k]
         return (coef, cond) if info == 0 and np.all(np.isfinite(coef)) else (None, cond)
 
+    def leverage(self, model: str, point: FloatArray, zhat: float | None = None) -> float:
+        """``sqrt(x0ᵀ (AᵀWA)⁻¹ x0)`` of ``model`` at one local ``point`` (its monomials ``x0``):
+        the standard error of the fitted height there, in units of the residual scale (inf if
+        the model cannot be fitted).
+
+        With weights that are not inverse variances (a spatial kernel of at most 1) this is an
+        upper bound of the sandwich estimate. ``zhat`` stands for the point's ``z`` in the
+        z-terms, as the fit's ``zhat`` did for the data.
+        """
+        k = len(QUADRIC_MODELS[model])
+        if k > self.usable or k >= self.r.shape[0]:
+            return math.inf
+        q = np.asarray(point, dtype=np.float64).reshape(1, 3)
+        row = _monomial_rows(q, k, None if zhat is None else np.array([zhat]))[:k, 0]
+        v, info = lapack.dtrtrs(self.r[:k, :k], row / self.norms[:k], trans=1)
+        lev = math.sqrt(float(v @ v)) if info == 0 else math.inf
+        return lev if math.isfinite(lev) else math.inf
+
 
 def fit_local_quadric(
     q: FloatArray, weights: FloatArray, model: str, *, max_cond: float = MAX_COND

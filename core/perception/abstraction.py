@@ -192,6 +192,10 @@ class SurfaceFit:
     #: The fit's residual scale (m; robust, at the points it kept): how noisy the points the
     #: estimate stands on were. 0 when the method measures none (the paper's shells).
     residual_m: float = 0.0
+    #: Standard error (m) of the fitted surface's height at the closest point (the model's own
+    #: prediction uncertainty there: large where the points leave it to extrapolate). 0 when
+    #: the method has no error model (the paper's shells, the nearest point).
+    height_se_m: float = 0.0
 
     def __post_init__(self) -> None:
         c, ok_c = _vec(self.centroid)
@@ -211,6 +215,8 @@ class SurfaceFit:
         object.__setattr__(self, "quality", min(1.0, max(0.0, q)) if np.isfinite(q) else 0.0)
         r = float(self.residual_m)
         object.__setattr__(self, "residual_m", r if np.isfinite(r) and r > 0.0 else 0.0)
+        se = float(self.height_se_m)
+        object.__setattr__(self, "height_se_m", se if np.isfinite(se) and se > 0.0 else 0.0)
         object.__setattr__(self, "shells", tuple(self.shells))
 
     def d_proj(self, hip: ArrayLike, r_hip_m: float) -> float:

@@ -150,6 +150,8 @@ class _Fit(NamedTuple):
     frame: FloatArray
     frame_origin: FloatArray
     coef: FloatArray
+    #: Standard error of the fitted height at the closest point, per unit residual scale.
+    leverage: float = math.inf
 
 
 def quadric_surface(
@@ -270,8 +272,20 @@ def _quadric_fit(
     noise_ratio = fit.scale / qc.noise_floor_m
     quality = fit.inliers * surround / (1.0 + 0.01 * noise_ratio * noise_ratio)
     n = len(points)
+    height_se = fit.scale * fit.leverage if math.isfinite(fit.leverage) else 0.0
     return SurfaceFit(
-        True, hip + origin, normal, note, (), quality, "quadric", fit.model, n, surfaces, fit.scale
+        True,
+        hip + origin,
+        normal,
+        note,
+        (),
+        quality,
+        "quadric",
+        fit.model,
+        n,
+        surfaces,
+        fit.scale,
+        height_se,
     )
 
 
@@ -334,7 +348,7 @@ def _fit_surface(
         )
         if isinstance(step, str):
             return step
-        origin_new, normal_new, model, frame, coef = step
+        origin_new, normal_new, model, frame, coef, leverage = step
         frame_origin = origin
         if not last:
             # Robust weights for the next refit, from this fit's residuals (m).
@@ -347,7 +361,9 @@ def _fit_surface(
             inliers = float(np.count_nonzero(robust[near] > 0.5)) / max(1, int(near.sum()))
         origin = origin_new
         normal = _face_camera(normal_new, camera_axis, -origin)
-    return _Fit(origin, normal, model, scale, inliers, cand, robust, frame, frame_origin, coef)
+    return _Fit(
+        origin, normal, model, scale, inliers, cand, robust, frame, frame_origin, coef, leverage
+    )
 
 
 def _rest_nearer(
@@ -410,7 +426,7 @@ def _tighten(fit: _Fit, noise: float, camera_axis: FloatArray, qc: QuadricConfig
         step = _refit(fit.cand, robust, fit.origin, fit.normal, models, qc)
         if isinstance(step, str):
             return step
-        origin, normal, model, frame, coef = step
+        origin, normal, model, frame, coef, leverage = step
         near = np.einsum("ij,ij->i", off, off) < (2.0 * bw) ** 2
         inliers = float(np.count_nonzero(robust[near] > 0.5)) / max(1, int(near.sum()))
         fit = _Fit(
@@ -424,6 +440,7 @@ def _tighten(fit: _Fit, noise: float, camera_axis: FloatArray, qc: QuadricConfig
             frame,
             fit.origin,
             coef,
+            leverage,
         )
     return fit
 
@@ -538,10 +555,12 @@ def _refit(
     normal: FloatArray,
     models: tuple[str, ...],
     qc: QuadricConfig,
-) -> tuple[FloatArray, FloatArray, str, FloatArray, FloatArray] | str:
+) -> tuple[FloatArray, FloatArray, str, FloatArray, FloatArray, float] | str:
     """One weighted fit in the frame at ``origin``; its closest point to the HIP (at 0).
 
-    Returns ``(closest, normal, model, frame, coef)`` or a string saying what failed.
+    Returns ``(closest, normal, model, frame, coef, leverage)`` or a string saying what failed;
+    ``leverage``: the standard error of the fitted height at the closest point per unit residual
+    scale (:meth:`~hapticloud.core.geometry.quadric.NestedQuadricLSQ.leverage`).
     """
     bw = qc.bandwidth_m
     frame = frame_from_unit_normal(normal)
@@ -577,11 +596,18 @@ def _refit(
         if not n_star[2] > _MIN_NORMAL_COS:
             failure = "closest point on a far sheet of the fit"
             continue
-        if len(QUADRIC_MODELS[model]) > 6 and not _one_sheet(q, coef, q_star):
+        z_terms = len(QUADRIC_MODELS[model]) > 6
+        if z_terms and not _one_sheet(q, coef, q_star):
             # The z-terms chased noise: a second sheet or a hole where the data are silent.
             failure = f"{model} fit folds near the closest point"
             continue
-        return origin + bw * (frame @ q_star), frame @ n_star, model, frame, coef
+        zhat = (
+            float(paraboloid_height(q_star[None, :], coef6)[0])
+            if z_terms and coef6 is not None
+            else None
+        )
+        leverage = lsq.leverage(model, q_star, zhat)
+        return origin + bw * (frame @ q_star), frame @ n_star, model, frame, coef, leverage
     return failure
 
 

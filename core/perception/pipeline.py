@@ -210,8 +210,13 @@ class CameraPipeline:
                     "surrounded by them"
                 )
                 return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
-            # Extrapolated: what the points do not show is taken as nearer, in proportion.
-            centroid = centroid + (cfg.extrapolation_margin * (gap - supported)) * fit.normal
+            # Extrapolated: what the points do not show is taken as nearer, by the fit's own
+            # uncertainty there where it has an error model, else in proportion to the gap.
+            if fit.height_se_m > 0.0:
+                shift = cfg.extrapolation_sigmas * fit.height_se_m
+            else:
+                shift = cfg.extrapolation_margin * (gap - supported)
+            centroid = centroid + shift * fit.normal
         margin = cfg.crop.exclude_margin_m
         if fit.valid:
             # The crop removed what it saw in the robot's grown shapes: a surface there is unseen,

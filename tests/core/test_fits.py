@@ -369,3 +369,50 @@ def test_quadric_patch_frame_and_world_round_trip():
     patch = QuadricPatch(True, [1.0, 2.0, 3.0], np.eye(3), 0.5, "plane", np.zeros(9), 0.0, 1.0)
     assert np.allclose(patch.to_local([[1.0, 2.0, 3.5]]), [[0.0, 0.0, 1.0]])
     assert patch.residuals([[1.0, 2.0, 3.5]]) == pytest.approx([0.5])
+
+
+def _explicit_leverage(q, w, cols, x0):
+    a = np.column_stack(cols)
+    return float(np.sqrt(x0 @ np.linalg.solve(a.T @ (a * w[:, None]), x0)))
+
+
+def test_leverage_is_the_standard_error_of_the_fitted_height_per_unit_noise():
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-1.0, 1.0, size=(300, 3))
+    q[:, 2] = 0.2 * q[:, 0] ** 2 - 0.1 * q[:, 1] ** 2 + 0.01 * rng.normal(size=300)
+    w = np.exp(-0.5 * np.einsum("ij,ij->i", q[:, :2], q[:, :2]))
+    x, y = q[:, 0], q[:, 1]
+    point = np.array([0.4, -0.3, 0.05])
+    px, py, pz = point
+    lsq = NestedQuadricLSQ(q, w, 6)
+    explicit = _explicit_leverage(
+        q,
+        w,
+        (np.ones(300), x, y, x * x, x * y, y * y),
+        np.array([1, px, py, px * px, px * py, py * py]),
+    )
+    assert lsq.leverage("paraboloid", point) == pytest.approx(explicit, rel=1e-9)
+    plane = _explicit_leverage(q, w, (np.ones(300), x, y), np.array([1, px, py]))
+    assert lsq.leverage("plane", point) == pytest.approx(plane, rel=1e-9)
+    # The z-terms use a prediction of z for the data, and the one given for the point.
+    zhat = 0.2 * x * x
+    full = NestedQuadricLSQ(q, w, 9, zhat)
+    cols = (np.ones(300), x, y, x * x, x * y, y * y, zhat * zhat, x * zhat, y * zhat)
+    row = np.array([1, px, py, px * px, px * py, py * py, pz * pz, px * pz, py * pz])
+    assert full.leverage("quadric", point, pz) == pytest.approx(
+        _explicit_leverage(q, w, cols, row), rel=1e-8
+    )
+
+
+def test_leverage_grows_where_the_fit_extrapolates_and_is_inf_when_it_cannot_fit():
+    rng = np.random.default_rng(4)
+    q = np.column_stack((rng.uniform(-1.0, 1.0, size=(400, 2)), np.zeros(400)))
+    lsq = NestedQuadricLSQ(q, np.ones(400), 6)
+    inside = lsq.leverage("paraboloid", np.array([0.0, 0.0, 0.0]))
+    edge = lsq.leverage("paraboloid", np.array([1.0, 0.0, 0.0]))
+    beyond = lsq.leverage("paraboloid", np.array([2.0, 0.0, 0.0]))
+    assert inside < edge < beyond
+    assert inside == pytest.approx(np.sqrt(6 / 400), rel=0.5)  # ~ sqrt(p / n) in the middle
+    line = NestedQuadricLSQ(np.zeros((2, 3)), np.ones(2), 6)  # two points: no paraboloid
+    assert lsq.leverage("quadric", np.zeros(3)) == np.inf  # not factorised (k_max 6)
+    assert line.leverage("paraboloid", np.zeros(3)) == np.inf

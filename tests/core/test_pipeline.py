@@ -199,3 +199,43 @@ def test_points_of_rejected_clusters_are_handed_on() -> None:
     assert est.valid and est.rejected is not None and est.rejected.shape[1] == 3
     assert est.rejected.shape[0] > 0 and not est.rejected.flags.writeable
     assert np.linalg.norm(est.rejected.mean(axis=0) - [0.06, 0.06, 0.02]) < 0.01
+
+
+def _cut_sphere(hip: np.ndarray, cut_m: float) -> np.ndarray:
+    """A sphere head under the HIP with the side x < cut_m removed (the end effector hides the
+    closest point, and the points lie on one side of it: extrapolated, not surrounded)."""
+    cloud = sphere_cloud(np.array([0.0, 0.0, -0.09]), 0.09, hip, seed=2)
+    return cloud[cloud[:, 0] > cut_m]
+
+
+@pytest.mark.parametrize("cut_m", [0.014, 0.022])
+def test_an_extrapolated_fit_is_moved_toward_the_hip_by_its_own_standard_error(cut_m) -> None:
+    def d_proj(sigmas: float, cloud: np.ndarray) -> float:
+        pipe = CameraPipeline(PerceptionConfig(extrapolation_sigmas=sigmas))
+        est = pipe.process(cloud, hip=HIP, camera_axis=AXIS, t=1.0)
+        assert est.valid, est.reason
+        return est.d_proj(HIP, 0.04)
+
+    cut = _cut_sphere(HIP, cut_m)
+    plain, four, eight = (d_proj(s, cut) for s in (0.0, 4.0, 8.0))
+    true = 0.06 - 0.04
+    assert abs(plain - true) < 0.5e-3  # a sphere is a quadric: extrapolated, still exact
+    shift = plain - four
+    assert 0.1e-3 < shift < 3e-3  # toward the HIP: what is not seen is taken as nearer
+    assert plain - eight == pytest.approx(2 * shift, rel=1e-6)  # in standard errors
+    # Supported by its points: taken as it is, whatever the setting.
+    whole = sphere_cloud(np.array([0.0, 0.0, -0.09]), 0.09, HIP, seed=2)
+    assert d_proj(0.0, whole) == d_proj(8.0, whole)
+
+
+def test_a_wider_hole_leaves_a_larger_standard_error() -> None:
+    shifts = []
+    for cut_m in (0.012, 0.024):
+        d = [
+            CameraPipeline(PerceptionConfig(extrapolation_sigmas=s))
+            .process(_cut_sphere(HIP, cut_m), hip=HIP, camera_axis=AXIS, t=1.0)
+            .d_proj(HIP, 0.04)
+            for s in (0.0, 1.0)
+        ]
+        shifts.append(d[0] - d[1])
+    assert 0.0 < shifts[0] < shifts[1]
