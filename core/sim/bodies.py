@@ -241,6 +241,20 @@ class Body:
         """Hashable identity of the rest shape (type and exact parameters)."""
         raise NotImplementedError
 
+    def distance_lower_bound(self, hip: FloatArray, t: float = 0.0) -> float:
+        """A bound (m) the signed distance of :meth:`closest_point` never falls below: the
+        distance from ``hip`` to the body's bounding box at ``t``, ``-inf`` inside the box."""
+        lo, hi = self._rest_box
+        p = hip - self.displacement(t)
+        gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+        if not gap.any():
+            return -math.inf
+        return float(np.sqrt(gap @ gap))
+
+    @cached_property
+    def _rest_box(self) -> tuple[FloatArray, FloatArray]:
+        return self._bounds_rest()
+
     @cached_property
     def _size_m(self) -> float:
         """Magnitude of the rest shape's coordinates (m): scales the round-off tolerance."""

@@ -32,6 +32,9 @@ from . import raycast
 from .bodies import MESH_TOLERANCE_M, Body
 from .raygrid import RayGrid, Refiner, Window, intersect_windows
 
+#: Bounding boxes within this (m) of the nearest distance found are not skipped (round-off).
+_BOUND_SLACK_M = 1e-6
+
 FloatArray = NDArray[np.float64]
 
 #: Label of a pixel whose ray hit nothing.
@@ -206,9 +209,18 @@ class SimWorld:
     def ground_truth(self, hip: ArrayLike, t: float = 0.0) -> GroundTruth:
         """The patient's closest surface point to ``hip`` (m) at time ``t`` (s), exactly."""
         hip = as_vector3(hip, "hip")
+        bodies = self._bodies
+        # The body whose bounding box is nearest gives a distance no farther body can beat; a
+        # body whose box lies beyond it is skipped (the display asks this at every frame).
+        lows = [b.distance_lower_bound(hip, t) for b in bodies]
+        first = min(range(len(bodies)), key=lows.__getitem__)
+        known = {first: bodies[first].closest_point(hip, t)}
+        bound = known[first].distance_m + _BOUND_SLACK_M
         best: GroundTruth | None = None
-        for b in self._bodies:
-            sp = b.closest_point(hip, t)
+        for i, b in enumerate(bodies):  # in order: the first of equals wins, as before
+            if lows[i] > bound:
+                continue
+            sp = known[i] if i in known else b.closest_point(hip, t)
             if best is None or sp.distance_m < best.distance_m:
                 best = GroundTruth(sp.point, sp.normal, sp.distance_m, b.name, b.part)
         assert best is not None  # the constructor demands a body

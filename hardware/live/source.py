@@ -57,7 +57,14 @@ from .contract import (
     SourceState,
 )
 from .scenes import SimSettings, scene_geometry
-from .worker import FramePacket, RecordRequest, SessionAttach, WorkerEnded, run_worker
+from .worker import (
+    ContextRequest,
+    FramePacket,
+    RecordRequest,
+    SessionAttach,
+    WorkerEnded,
+    run_worker,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -220,6 +227,11 @@ class LiveSource:
 
         self._record_sink = sink
         self._requests.put(RecordRequest(None if sink is None else record or RecordConfig()))
+
+    def want_context(self, on: bool) -> None:
+        """Render and send the cameras' scene clouds (the window's context layer) or not, from
+        the next frame on; the last one received stays in the snapshots."""
+        self._requests.put(ContextRequest(bool(on)))
 
     def request_config(self, config: LiveConfig) -> int:
         """Use ``config`` from the next frame on; returns the request's version number.

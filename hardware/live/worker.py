@@ -94,6 +94,14 @@ class SessionAttach:
 
 
 @dataclass(frozen=True)
+class ContextRequest:
+    """Ask the worker to render and send each camera's scene cloud (``on``), or not: the window
+    asks for it only while its layer is shown (off by default)."""
+
+    on: bool
+
+
+@dataclass(frozen=True)
 class RecordRequest:
     """Ask the worker to cut every frame it shows for a recording (``record``: a
     :class:`~hapticloud.core.recording.RecordConfig`), or to stop (``None``)."""
@@ -172,9 +180,9 @@ def run_worker(
     """Run the simulated data path until ``stop`` is set; one :class:`FramePacket` per frame.
 
     ``conn`` is the sending end of a pipe, ``requests`` a queue of ``(version, LiveConfig)``,
-    :class:`RecordRequest` and :class:`SessionAttach`, ``stop`` an event. Runs in a worker
-    process (or thread); everything it builds is its own. With ``session`` the cameras see the
-    control process's robot and every estimate goes to it.
+    :class:`RecordRequest`, :class:`ContextRequest` and :class:`SessionAttach`, ``stop`` an
+    event. Runs in a worker process (or thread); everything it builds is its own. With
+    ``session`` the cameras see the control process's robot and every estimate goes to it.
     """
     worker: _Worker | None = None
     try:
@@ -312,6 +320,8 @@ class _Worker:
                 break
             if isinstance(item, RecordRequest):
                 self.display.recording = item.record
+            elif isinstance(item, ContextRequest):
+                self.display.context_wanted = item.on
             elif isinstance(item, SessionAttach):  # a session that came up after the start
                 self.attach(item)
             else:
@@ -367,6 +377,8 @@ class Display:
         self.tick_dt = 1.0 / CONTROL_RATE_HZ
         self.version, self.sent_version = 0, -1
         self.recording: Any = None  # a RecordConfig while the app records
+        #: Render the scene cloud (until a :class:`ContextRequest` says the window hides it).
+        self.context_wanted = True
         self.next_tick = 0.0
 
     def configure(self, version: int, requested: LiveConfig, t: float) -> None:
@@ -393,7 +405,8 @@ class Display:
             crop = self.channels[j].crop
             cut = _cut(item.frame, hip, robot, est, crop, self.recording)
         context = None
-        if not 0.0 <= t - self.context_t[j] < CONTEXT_PERIOD_S:  # due, or the clock went back
+        if self.context_wanted and not 0.0 <= t - self.context_t[j] < CONTEXT_PERIOD_S:
+            # Due (or the clock went back), and shown: nobody reads it otherwise.
             context = self.twins[j].render(world, t, occluders=robot).points_world()
             context = context.astype(np.float32)
             self.context_t[j] = t

@@ -96,6 +96,24 @@ def test_frame_updates_never_add_actors(live) -> None:
     window.controls.layer_actions["bodies"].setChecked(True)
 
 
+def test_the_scene_clouds_come_only_while_their_layer_is_shown(live) -> None:
+    """Hidden by default: the worker renders none; shown: they arrive; hidden again: they stop."""
+    window, qtbot = live
+    source = window.source
+    assert not window.view.layer_visible("context")
+
+    def contexts_since(seq: int) -> int:
+        snap = window.shown
+        return 0 if snap is None or snap.seq <= seq else len(snap.cameras[0].context)
+
+    # Frames keep the last cloud received: an empty one means none was ever rendered.
+    assert contexts_since(0) == 0
+    window.controls.layer_actions["context"].setChecked(True)
+    qtbot.waitUntil(lambda: contexts_since(0) > 100, timeout=TIMEOUT_MS)
+    window.controls.layer_actions["context"].setChecked(False)
+    assert source is window.source
+
+
 def test_moving_a_slider_changes_the_pipeline_parameter(live) -> None:
     window, qtbot = live
     editor = window.panel.editor("perception.cluster.min_cluster_points")

@@ -623,3 +623,37 @@ def test_ellipsoid_queries_with_subnormal_components(axes, q) -> None:
     assert on_surface < 1e-15 and across < 1e-15
     brute = np.linalg.norm(_fib_sphere(20000) * e - q, axis=1).min()
     assert np.linalg.norm(q - x) <= brute + 1e-12
+
+
+@pytest.mark.parametrize("name", list(BODIES))
+def test_distance_lower_bound_never_exceeds_the_signed_distance(name: str, samples) -> None:
+    body = BODIES[name].moved([0.01, -0.02, 0.03])
+    shift = np.array([0.01, -0.02, 0.03])
+    surface = samples[name] + shift
+    rng = np.random.default_rng(11)
+    for q in _queries(body, rng, 60):
+        low = body.distance_lower_bound(q)
+        exact = body.closest_point(q).distance_m
+        assert low <= exact + 1e-12
+        # The box holds every surface point: no sample is nearer than the bound either.
+        assert low <= float(np.min(np.linalg.norm(surface - q, axis=1))) + 1e-12
+    lo, hi = body.bounds()
+    assert body.distance_lower_bound(0.5 * (lo + hi)) == -math.inf  # inside the box
+
+
+def test_ground_truth_skipping_far_boxes_equals_every_body_in_order() -> None:
+    # Spread out: most boxes lie beyond the nearest body's distance and are skipped.
+    bodies = [b.moved([0.3 * i, 0.0, 0.0]) for i, b in enumerate(BODIES.values())]
+    world = SimWorld(bodies)
+    rng = np.random.default_rng(12)
+    lo = np.min([b.bounds()[0] for b in bodies], axis=0) - 0.1
+    hi = np.max([b.bounds()[1] for b in bodies], axis=0) + 0.1
+    for q in rng.uniform(lo, hi, (300, 3)):
+        truth = world.ground_truth(q)
+        brute = min(
+            ((b.closest_point(q), i) for i, b in enumerate(bodies)),
+            key=lambda item: (item[0].distance_m, item[1]),
+        )
+        assert truth.body == bodies[brute[1]].name
+        assert truth.distance_m == brute[0].distance_m
+        assert np.array_equal(truth.point, brute[0].point)

@@ -169,3 +169,47 @@ def test_each_camera_sends_its_scene_cloud_at_most_every_context_period() -> Non
     for snap in snaps[cameras:]:
         for frame in snap.cameras:
             assert len(frame.context) > 100 and not frame.context.flags.writeable
+
+
+def test_the_scene_cloud_is_rendered_only_while_the_window_shows_it() -> None:
+    """A ContextRequest(False) (the window's context layer hidden, its default) stops the
+    worker rendering the scene clouds; True brings them back at the next due frame."""
+    import dataclasses
+    import queue
+    import threading
+
+    from hapticloud.hardware.live import worker as live_worker
+    from hapticloud.hardware.live.session import scene_tables
+
+    class Conn:
+        def __init__(self) -> None:
+            self.packets: list = []
+
+        def send(self, packet) -> None:
+            self.packets.append(packet)
+
+    conn, requests = Conn(), queue.Queue()
+    config = dataclasses.replace(LiveConfig(), **scene_tables("demo"))
+    w = live_worker._Worker(FAST, config, conn, requests, threading.Event())
+    renders = []
+    for twin in w.display.twins:
+        original = twin.render
+        twin.render = lambda *a, _o=original, **k: renders.append(1) or _o(*a, **k)
+
+    def run_until(n: int) -> None:
+        deadline = time.monotonic() + 20.0
+        while len(conn.packets) < n and time.monotonic() < deadline:
+            w._apply_requests()
+            time.sleep(max(0.0, w.perception.step() - time.monotonic()))
+
+    requests.put(live_worker.ContextRequest(False))
+    w.perception.start()
+    try:
+        run_until(30)
+        assert len(conn.packets) >= 30
+        assert renders == [] and all(p.context is None for p in conn.packets)
+        requests.put(live_worker.ContextRequest(True))
+        run_until(60)
+    finally:
+        w.perception.close()
+    assert renders and any(p.context is not None for p in conn.packets[30:])
