@@ -57,15 +57,16 @@ class PerceptionConfig(StageConfig):
         0.15,
         lo=0.0,
         hi=2.0,
-        doc="an extrapolated closest point of a method without an error model (the paper's "
-        "shells) is moved toward the HIP by this x its gap beyond supported_gap_m",
+        doc="an extrapolated closest point is moved toward the HIP by this x its gap beyond "
+        "supported_gap_m (what is not seen is taken as nearer)",
     )
     extrapolation_sigmas: float = param(
-        4.0,
+        0.0,
         lo=0.0,
         hi=20.0,
-        doc="an extrapolated closest point of a fitted surface is moved toward the HIP by this "
-        "many standard errors of the fitted height there (what is not seen is taken as nearer)",
+        doc="instead (> 0), a fitted surface's extrapolated closest point is moved toward the HIP "
+        "by this many standard errors of the fitted height there: safer, but the shift varies "
+        "from frame to frame and a press bounces (docs/benchmarks.md)",
     )
     min_seen_fraction: float = param(
         0.9,

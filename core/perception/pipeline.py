@@ -210,9 +210,9 @@ class CameraPipeline:
                     "surrounded by them"
                 )
                 return SurfaceEstimate.invalid(t, self.camera, reason, **extra)
-            # Extrapolated: what the points do not show is taken as nearer, by the fit's own
-            # uncertainty there where it has an error model, else in proportion to the gap.
-            if fit.height_se_m > 0.0:
+            # Extrapolated: what the points do not show is taken as nearer, in proportion to the
+            # gap or (extrapolation_sigmas > 0) by the fit's own uncertainty there.
+            if cfg.extrapolation_sigmas > 0.0 and fit.height_se_m > 0.0:
                 shift = cfg.extrapolation_sigmas * fit.height_se_m
             else:
                 shift = cfg.extrapolation_margin * (gap - supported)

@@ -211,8 +211,9 @@ def _cut_sphere(hip: np.ndarray, cut_m: float) -> np.ndarray:
 @pytest.mark.parametrize("cut_m", [0.014, 0.022])
 def test_an_extrapolated_fit_is_moved_toward_the_hip_by_its_own_standard_error(cut_m) -> None:
     def d_proj(sigmas: float, cloud: np.ndarray) -> float:
-        pipe = CameraPipeline(PerceptionConfig(extrapolation_sigmas=sigmas))
-        est = pipe.process(cloud, hip=HIP, camera_axis=AXIS, t=1.0)
+        # No linear margin: sigmas 0 reports the fit as it is.
+        cfg = PerceptionConfig(extrapolation_sigmas=sigmas, extrapolation_margin=0.0)
+        est = CameraPipeline(cfg).process(cloud, hip=HIP, camera_axis=AXIS, t=1.0)
         assert est.valid, est.reason
         return est.d_proj(HIP, 0.04)
 
@@ -226,13 +227,16 @@ def test_an_extrapolated_fit_is_moved_toward_the_hip_by_its_own_standard_error(c
     # Supported by its points: taken as it is, whatever the setting.
     whole = sphere_cloud(np.array([0.0, 0.0, -0.09]), 0.09, HIP, seed=2)
     assert d_proj(0.0, whole) == d_proj(8.0, whole)
+    # The default (extrapolation_sigmas 0) moves it by the linear margin instead: nearer too.
+    est = CameraPipeline(PerceptionConfig()).process(cut, hip=HIP, camera_axis=AXIS, t=1.0)
+    assert est.valid and est.d_proj(HIP, 0.04) < plain
 
 
 def test_a_wider_hole_leaves_a_larger_standard_error() -> None:
     shifts = []
     for cut_m in (0.012, 0.024):
         d = [
-            CameraPipeline(PerceptionConfig(extrapolation_sigmas=s))
+            CameraPipeline(PerceptionConfig(extrapolation_sigmas=s, extrapolation_margin=0.0))
             .process(_cut_sphere(HIP, cut_m), hip=HIP, camera_axis=AXIS, t=1.0)
             .d_proj(HIP, 0.04)
             for s in (0.0, 1.0)
