@@ -188,7 +188,9 @@ class NestedQuadricLSQ:
 
         With weights that are not inverse variances (a spatial kernel of at most 1) this is an
         upper bound of the sandwich estimate. ``zhat`` stands for the point's ``z`` in the
-        z-terms, as the fit's ``zhat`` did for the data.
+        z-terms, as the fit's ``zhat`` did for the data. Approximate for models with z-terms:
+        the linear design's, not that of the heights' Gauss-Newton refinement, and along the
+        fit's local z, not the surface normal.
         """
         k = len(QUADRIC_MODELS[model])
         if k > self.usable or k >= self.r.shape[0]:

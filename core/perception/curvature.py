@@ -344,7 +344,13 @@ def _fit_surface(
     for it in range(qc.n_refits):
         last = it == qc.n_refits - 1
         step = _refit(
-            cand if last else coarse, robust, origin, normal, models if last else coarse_models, qc
+            cand if last else coarse,
+            robust,
+            origin,
+            normal,
+            models if last else coarse_models,
+            qc,
+            with_leverage=last,
         )
         if isinstance(step, str):
             return step
@@ -555,12 +561,14 @@ def _refit(
     normal: FloatArray,
     models: tuple[str, ...],
     qc: QuadricConfig,
+    with_leverage: bool = True,
 ) -> tuple[FloatArray, FloatArray, str, FloatArray, FloatArray, float] | str:
     """One weighted fit in the frame at ``origin``; its closest point to the HIP (at 0).
 
     Returns ``(closest, normal, model, frame, coef, leverage)`` or a string saying what failed;
-    ``leverage``: the standard error of the fitted height at the closest point per unit residual
-    scale (:meth:`~hapticloud.core.geometry.quadric.NestedQuadricLSQ.leverage`).
+    ``leverage`` (``with_leverage``, else inf): the standard error of the fitted height at the
+    closest point per unit residual scale
+    (:meth:`~hapticloud.core.geometry.quadric.NestedQuadricLSQ.leverage`).
     """
     bw = qc.bandwidth_m
     frame = frame_from_unit_normal(normal)
@@ -601,12 +609,14 @@ def _refit(
             # The z-terms chased noise: a second sheet or a hole where the data are silent.
             failure = f"{model} fit folds near the closest point"
             continue
-        zhat = (
-            float(paraboloid_height(q_star[None, :], coef6)[0])
-            if z_terms and coef6 is not None
-            else None
-        )
-        leverage = lsq.leverage(model, q_star, zhat)
+        leverage = math.inf
+        if with_leverage:  # only the answer's: the frame-moving refits discard theirs
+            zhat = (
+                float(paraboloid_height(q_star[None, :], coef6)[0])
+                if z_terms and coef6 is not None
+                else None
+            )
+            leverage = lsq.leverage(model, q_star, zhat)
         return origin + bw * (frame @ q_star), frame @ n_star, model, frame, coef, leverage
     return failure
 

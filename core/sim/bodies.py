@@ -232,7 +232,7 @@ class Body:
 
     def bounds(self, t: float = 0.0) -> tuple[FloatArray, FloatArray]:
         """Axis-aligned bounding box ``(lo, hi)`` at time ``t``, m."""
-        lo, hi = self._bounds_rest()
+        lo, hi = self._rest_box
         shift = self.displacement(t)
         return lo + shift, hi + shift
 
@@ -258,7 +258,7 @@ class Body:
     @cached_property
     def _size_m(self) -> float:
         """Magnitude of the rest shape's coordinates (m): scales the round-off tolerance."""
-        lo, hi = self._bounds_rest()
+        lo, hi = self._rest_box
         return max(_magnitude(lo), _magnitude(hi))
 
     def _closest_rest(self, p: FloatArray, noise: float) -> tuple[FloatArray, FloatArray, float]:

@@ -95,8 +95,9 @@ class SessionAttach:
 
 @dataclass(frozen=True)
 class ContextRequest:
-    """Ask the worker to render and send each camera's scene cloud (``on``), or not: the window
-    asks for it only while its layer is shown (off by default)."""
+    """Ask the worker to render and send each camera's scene cloud (``on``), or not. The worker
+    renders them until told otherwise; the window's layer is off by default, and the window asks
+    before it starts the source (the request is queued ahead of the worker's first frame)."""
 
     on: bool
 

@@ -371,7 +371,7 @@ def test_quadric_patch_frame_and_world_round_trip():
     assert patch.residuals([[1.0, 2.0, 3.5]]) == pytest.approx([0.5])
 
 
-def _explicit_leverage(q, w, cols, x0):
+def _explicit_leverage(w, cols, x0):
     a = np.column_stack(cols)
     return float(np.sqrt(x0 @ np.linalg.solve(a.T @ (a * w[:, None]), x0)))
 
@@ -386,13 +386,12 @@ def test_leverage_is_the_standard_error_of_the_fitted_height_per_unit_noise():
     px, py, pz = point
     lsq = NestedQuadricLSQ(q, w, 6)
     explicit = _explicit_leverage(
-        q,
         w,
         (np.ones(300), x, y, x * x, x * y, y * y),
         np.array([1, px, py, px * px, px * py, py * py]),
     )
     assert lsq.leverage("paraboloid", point) == pytest.approx(explicit, rel=1e-9)
-    plane = _explicit_leverage(q, w, (np.ones(300), x, y), np.array([1, px, py]))
+    plane = _explicit_leverage(w, (np.ones(300), x, y), np.array([1, px, py]))
     assert lsq.leverage("plane", point) == pytest.approx(plane, rel=1e-9)
     # The z-terms use a prediction of z for the data, and the one given for the point.
     zhat = 0.2 * x * x
@@ -400,7 +399,7 @@ def test_leverage_is_the_standard_error_of_the_fitted_height_per_unit_noise():
     cols = (np.ones(300), x, y, x * x, x * y, y * y, zhat * zhat, x * zhat, y * zhat)
     row = np.array([1, px, py, px * px, px * py, py * py, pz * pz, px * pz, py * pz])
     assert full.leverage("quadric", point, pz) == pytest.approx(
-        _explicit_leverage(q, w, cols, row), rel=1e-8
+        _explicit_leverage(w, cols, row), rel=1e-8
     )
 
 

@@ -641,19 +641,35 @@ def test_distance_lower_bound_never_exceeds_the_signed_distance(name: str, sampl
     assert body.distance_lower_bound(0.5 * (lo + hi)) == -math.inf  # inside the box
 
 
-def test_ground_truth_skipping_far_boxes_equals_every_body_in_order() -> None:
-    # Spread out: most boxes lie beyond the nearest body's distance and are skipped.
-    bodies = [b.moved([0.3 * i, 0.0, 0.0]) for i, b in enumerate(BODIES.values())]
+def test_ground_truth_skipping_far_boxes_equals_every_body_in_order(monkeypatch) -> None:
+    # Spread out and moving: most boxes lie beyond the nearest body's distance and are skipped.
+    bodies = [
+        dataclasses.replace(b.moved([0.3 * i, 0.0, 0.0]), velocity_mps=np.array([0.0, 0.05 * i, 0]))
+        for i, b in enumerate(BODIES.values())
+    ]
     world = SimWorld(bodies)
     rng = np.random.default_rng(12)
     lo = np.min([b.bounds()[0] for b in bodies], axis=0) - 0.1
     hi = np.max([b.bounds()[1] for b in bodies], axis=0) + 0.1
-    for q in rng.uniform(lo, hi, (300, 3)):
-        truth = world.ground_truth(q)
+    calls: list[int] = []
+    skipped: list[int] = []
+    for kind in {type(b) for b in bodies}:
+        exact = kind.closest_point
+        monkeypatch.setattr(
+            kind,
+            "closest_point",
+            lambda self, *a, _f=exact, **k: calls.append(1) or _f(self, *a, **k),
+        )
+    for q, t in zip(rng.uniform(lo, hi, (300, 3)), rng.uniform(0.0, 2.0, 300), strict=True):
+        calls.clear()
+        truth = world.ground_truth(q, t)
+        asked = len(calls)
         brute = min(
-            ((b.closest_point(q), i) for i, b in enumerate(bodies)),
+            ((b.closest_point(q, t), i) for i, b in enumerate(bodies)),
             key=lambda item: (item[0].distance_m, item[1]),
         )
+        skipped.append(len(bodies) - asked)
         assert truth.body == bodies[brute[1]].name
         assert truth.distance_m == brute[0].distance_m
         assert np.array_equal(truth.point, brute[0].point)
+    assert sum(skipped) > 2 * len(skipped)  # the bound does skip bodies, most of the time
