@@ -275,6 +275,13 @@ class Body:
         raise NotImplementedError
 
 
+def _unit(v: FloatArray) -> FloatArray:
+    """``v`` (non-zero) scaled to unit length, also when its components are subnormal: squaring
+    1e-160 underflows, and ``v / |v|`` came out 1.2e-5 too long (hypothesis found it)."""
+    scaled = v / float(np.max(np.abs(v)))
+    return scaled / float(np.linalg.norm(scaled))
+
+
 def _key(*values: object) -> tuple:
     return tuple(v.tobytes() if isinstance(v, np.ndarray) else v for v in values)
 
@@ -398,7 +405,7 @@ class CapsuleBody(Body):
         # Exactly on the axis every radial direction is nearest: take a fixed one. Just off it
         # the offset's own direction, even if it is round-off: a fixed one would put the point
         # up to 2 r from where the distance r - radius says (a query 1 km out, 2e-11 m off).
-        n = v / r if r > 0.0 else perpendicular
+        n = _unit(v) if r > 0.0 else perpendicular
         return on_axis + self.radius_m * n, n, r - self.radius_m
 
     def _intersect_rest(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -449,7 +456,7 @@ class CylinderBody(Body):
         rho = float(np.linalg.norm(w))
         # Exactly on the axis every radial direction is nearest: take a fixed one; just off it
         # the offset's own direction (as the capsule: the point agrees with rho - radius).
-        radial = w / rho if rho > 0.0 else perpendicular
+        radial = _unit(w) if rho > 0.0 else perpendicular
         side = 1.0 if h >= 0 else -1.0
         d_r, d_h = rho - self.radius_m, abs(h) - half
         if d_r <= 0 and d_h <= 0:  # inside: leave through the nearer of side and cap

@@ -673,3 +673,18 @@ def test_ground_truth_skipping_far_boxes_equals_every_body_in_order(monkeypatch)
         assert truth.distance_m == brute[0].distance_m
         assert np.array_equal(truth.point, brute[0].point)
     assert sum(skipped) > 2 * len(skipped)  # the bound does skip bodies, most of the time
+
+
+@pytest.mark.parametrize("kind", [CapsuleBody, CylinderBody])
+def test_a_query_a_subnormal_distance_off_the_axis_gets_a_unit_normal(kind) -> None:
+    """Found by the property test above: an axis 1.6e-160 m off the query, 1 km out."""
+    body = kind(
+        name="q",
+        part="forearm",
+        a=np.array([0.0, 1.58987492e-160, -0.25]),
+        b=np.array([0.0, 1.58987492e-160, 0.25]),
+        radius_m=0.25,
+    ).moved([1000.0, -1000.0, 1000.0])
+    sp = body.closest_point(np.array([1000.0, -1000.0, 1000.0]))
+    assert abs(np.linalg.norm(sp.normal) - 1.0) < 1e-12
+    assert sp.distance_m == pytest.approx(-0.25)
