@@ -305,9 +305,11 @@ def _fit_surface(
     camera_axis: FloatArray,
     qc: QuadricConfig,
     seeded: bool = False,
+    with_leverage: bool = True,
 ) -> _Fit | str:
     """Steps 1-3 on HIP-relative points ``rel`` (m) with squared distances ``d2``; a string
-    says what failed. ``seeded``: the initial plane from the nearest point's patch only."""
+    says what failed. ``seeded``: the initial plane from the nearest point's patch only;
+    ``with_leverage``: the fit may answer (else its leverage is left inf, not computed)."""
     bw = qc.bandwidth_m
     # 1. Initial plane through the points near the nearest ones (a few skipped: flying pixels).
     k = min(len(rel) - 1, max(2, len(rel) // 200))
@@ -350,7 +352,7 @@ def _fit_surface(
             normal,
             models if last else coarse_models,
             qc,
-            with_leverage=last,
+            with_leverage=with_leverage and last,
         )
         if isinstance(step, str):
             return step
@@ -395,7 +397,7 @@ def _rest_nearer(
     rest = ~(near & (np.abs(res) < qc.second_surface_sigmas * noise))
     if int(np.count_nonzero(rest)) < qc.min_points:
         return ""
-    other = _fit_surface(rel[rest], d2[rest], camera_axis, wide)
+    other = _fit_surface(rel[rest], d2[rest], camera_axis, wide, with_leverage=False)
     if isinstance(other, str):
         return ""
     dist = float(np.sqrt(fit.origin @ fit.origin))
@@ -426,10 +428,11 @@ def _tighten(fit: _Fit, noise: float, camera_axis: FloatArray, qc: QuadricConfig
     bw = qc.bandwidth_m
     models = _MODEL_ORDER if qc.model == "auto" else (qc.model,)
     scale = max(noise, qc.noise_floor_m)
-    for _ in range(_TIGHT_REFITS):
+    for it in range(_TIGHT_REFITS):
         off = fit.cand - fit.frame_origin
         robust = _robust_weights(_residual_m(fit, fit.cand, bw), scale, qc)
-        step = _refit(fit.cand, robust, fit.origin, fit.normal, models, qc)
+        last = it == _TIGHT_REFITS - 1
+        step = _refit(fit.cand, robust, fit.origin, fit.normal, models, qc, with_leverage=last)
         if isinstance(step, str):
             return step
         origin, normal, model, frame, coef, leverage = step
@@ -497,7 +500,8 @@ def _nearer_surface(
     if n_other >= qc.min_points:
         step = max(1, n_other // qc.max_points)
         rel2 = every[other][::step]
-        second = _fit_surface(rel2, d2_every[other][::step], camera_axis, qc)
+        # Tightened next, which computes the leverage of the fit that may answer.
+        second = _fit_surface(rel2, d2_every[other][::step], camera_axis, qc, with_leverage=False)
         if isinstance(second, _Fit):
             second = _tighten(second, noise, camera_axis, qc)
         if isinstance(second, _Fit):
@@ -509,7 +513,13 @@ def _nearer_surface(
             n_mine = int(np.count_nonzero(mine))
             if n_mine >= qc.min_points:
                 step = max(1, n_mine // qc.max_points)
-                again = _fit_surface(every[mine][::step], d2_every[mine][::step], camera_axis, qc)
+                again = _fit_surface(
+                    every[mine][::step],
+                    d2_every[mine][::step],
+                    camera_axis,
+                    qc,
+                    with_leverage=False,
+                )
                 if isinstance(again, _Fit):
                     again = _tighten(again, noise, camera_axis, qc)
                 if isinstance(again, _Fit):

@@ -214,13 +214,13 @@ class SimWorld:
         # body whose box lies beyond it is skipped (the display asks this at every frame).
         lows = [b.distance_lower_bound(hip, t) for b in bodies]
         first = min(range(len(bodies)), key=lows.__getitem__)
-        known = {first: bodies[first].closest_point(hip, t)}
-        bound = known[first].distance_m + _BOUND_SLACK_M
+        first_sp = bodies[first].closest_point(hip, t)
+        bound = first_sp.distance_m + _BOUND_SLACK_M
         best: GroundTruth | None = None
         for i, b in enumerate(bodies):  # in order: the first of equals wins, as before
             if lows[i] > bound:
                 continue
-            sp = known[i] if i in known else b.closest_point(hip, t)
+            sp = first_sp if i == first else b.closest_point(hip, t)
             if best is None or sp.distance_m < best.distance_m:
                 best = GroundTruth(sp.point, sp.normal, sp.distance_m, b.name, b.part)
         assert best is not None  # the constructor demands a body
