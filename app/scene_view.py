@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -105,6 +106,9 @@ _PRESET_OFFSETS = {
 }
 
 _ARROW_M = 0.06  # estimate normals are drawn this long
+#: The caption (time, frame) is rewritten at most this often (s): a changed text is rasterised
+#: and uploaded as a new texture, ~5 % of the window's thread at every frame in software GL.
+CAPTION_PERIOD_S = 0.25
 _SHELL_NORMAL_M = 0.025
 _CIRCLE_SEGMENTS = 48
 _EMPTY = np.zeros((1, 3))
@@ -323,6 +327,9 @@ class SceneView(QtWidgets.QWidget):
         self._last_hip: FloatArray | None = None
         self._shell_count = -1
         self._stop_shown = False
+        self._caption_t = -math.inf
+        #: The (length, radius) each robot capsule's mesh is built for (m).
+        self._capsule_dims: dict[str, tuple[float, float]] = {}
         self._capsule, self._capsule_upper = _capsule_template()
         self._capsule_normals = np.array(self._capsule.point_data["Normals"])
         self.frames_shown = 0
@@ -386,6 +393,8 @@ class SceneView(QtWidgets.QWidget):
             names.clear()
         self._geometry = geometry
         self._stop_shown = False
+        self._caption_t = -math.inf
+        self._capsule_dims.clear()
         self._shell_count = -1
 
         for body in geometry.bodies:
@@ -470,8 +479,10 @@ class SceneView(QtWidgets.QWidget):
             lighting=False,
         )
         for i, shape in enumerate(geometry.robot_shapes):
-            # Capsules get new points and normals per frame (their template's normals rotated:
-            # a stretched sphere keeps its normals); spheres and boxes move by user matrix.
+            # Every shape moves by user matrix. A capsule's mesh is its template stretched to
+            # the link's length and radius (a stretched sphere keeps its normals), rebuilt only
+            # when those change: rewriting ~20 links' points per frame re-uploaded their buffers,
+            # ~15 % of the window's thread in software GL (py-spy).
             template = (
                 self._capsule.copy()
                 if shape == "capsule"
@@ -694,9 +705,12 @@ class SceneView(QtWidgets.QWidget):
         self._show_shells(snap)
         self._show_fused(snap)
         self._show_truth(snap)
-        self._caption.SetInput(
-            f"t = {snap.t:6.2f} s   frame {snap.seq}   HIP r = {1e3 * r_hip:.0f} mm"
-        )
+        now = time.monotonic()
+        if now - self._caption_t >= CAPTION_PERIOD_S or snap.state is not SourceState.RUNNING:
+            self._caption_t = now
+            self._caption.SetInput(
+                f"t = {snap.t:6.2f} s   frame {snap.seq}   HIP r = {1e3 * r_hip:.0f} mm"
+            )
         if snap.state is SourceState.FAILED:
             self._banner.SetInput("FAILED")
         elif snap.state is SourceState.STOPPED or self._stop_shown:
@@ -793,13 +807,20 @@ class SceneView(QtWidgets.QWidget):
             elif isinstance(prim, Capsule):
                 axis = prim.b - prim.a
                 length = float(np.linalg.norm(axis))
+                # To the micrometre: a link's length from the joint angles wobbles in its last bits.
+                dims = (round(length, 6), round(float(prim.radius), 6))
+                if dims != self._capsule_dims.get(name):
+                    self._capsule_dims[name] = dims
+                    local = np.array(self._capsule.points)
+                    local[self._capsule_upper, 2] += dims[0] / dims[1]
+                    mesh = self._meshes[name]
+                    mesh.points = local * dims[1]
+                    mesh.point_data["Normals"] = self._capsule_normals
                 u, v, w = _basis(axis if length > 1e-9 else np.array([0.0, 0.0, 1.0]))
-                local = np.array(self._capsule.points)
-                local[self._capsule_upper, 2] += length / prim.radius
-                rot = np.column_stack((u, v, w))
-                mesh = self._meshes[name]
-                mesh.points = (local * prim.radius) @ rot.T + prim.a
-                mesh.point_data["Normals"] = self._capsule_normals @ rot.T
+                m = np.eye(4)
+                m[:3, :3] = np.column_stack((u, v, w))
+                m[:3, 3] = prim.a
+                self._move(name, m)
             elif isinstance(prim, Box):
                 m = np.eye(4)
                 m[:3, :3] = prim.rotation * (2.0 * prim.half_extents)

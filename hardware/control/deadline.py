@@ -37,8 +37,9 @@ __all__ = ["DeadlineLoop", "DeadlineStats", "lock_memory", "try_sched_fifo"]
 FALLBACK_NICE = -10
 
 
-def try_sched_fifo(priority: int) -> tuple[bool, str]:
-    """Switch the calling thread to ``SCHED_FIFO`` at ``priority``; never raises.
+def try_sched_fifo(priority: int, fallback_nice: int = FALLBACK_NICE) -> tuple[bool, str]:
+    """Switch the calling thread to ``SCHED_FIFO`` at ``priority``; never raises. Refused, it
+    takes the nice value ``fallback_nice`` instead (refused too, it keeps its own).
 
     Returns ``(True, "SCHED_FIFO priority N")`` or ``(False, why)``.
     """
@@ -51,11 +52,11 @@ def try_sched_fifo(priority: int) -> tuple[bool, str]:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
     except (PermissionError, OSError) as exc:
         why = f"SCHED_FIFO refused ({exc.__class__.__name__}: {exc}); normal scheduler"
-        try:  # then ahead of the perception worker (nice -5) and the window (nice 5) at least
-            os.setpriority(os.PRIO_PROCESS, 0, FALLBACK_NICE)
+        try:  # the loop then ahead of the perception worker (nice -5) and the window (nice 5)
+            os.setpriority(os.PRIO_PROCESS, 0, fallback_nice)
         except OSError:
             return False, why
-        return False, f"{why} at nice {FALLBACK_NICE}"
+        return False, f"{why} at nice {fallback_nice}"
     return True, f"SCHED_FIFO priority {prio}"
 
 

@@ -199,7 +199,11 @@ class LiveSource:
             )
         else:
             self._worker = self._ctx.Process(
-                target=run_worker, args=args, name="hapticloud-sim-worker", daemon=True
+                target=run_worker,
+                args=args,
+                kwargs={"own_process": True},
+                name="hapticloud-sim-worker",
+                daemon=True,
             )
         self._worker.start()
         if not self._in_process:

@@ -42,6 +42,7 @@ from hapticloud.core.sim import GroundTruth
 from hapticloud.core.studies.demo import CAMERA_RATE_HZ
 from numpy.typing import NDArray
 
+from ..control.deadline import try_sched_fifo
 from ..perception import (
     ChannelSpec,
     ControlSink,
@@ -70,11 +71,17 @@ CONTEXT_STRIDE = 8
 #: workspace (its layer is off by default), not something perception or the truth reads: at
 #: every frame it cost ~8 % of a core of the 2 (render, pickling and the receiver's copy).
 CONTEXT_PERIOD_S = 0.2
-#: ``nice`` value of the worker process (negative: ahead of the GUI when both want the CPU), set
-#: as is, not added to the GUI's (which gives way too: ``app.commands.app.GUI_NICE``). Its
-#: frames feed the control loop's estimate and frame watchdogs (0.1 s): on 2 cores beside the
-#: GUI's software rendering a late frame held the surface a few times a minute, while a slower
-#: view costs only smoothness. Needs root (or CAP_SYS_NICE); refused, it keeps the GUI's.
+#: ``SCHED_FIFO`` priority of the worker's frame loop: below the control loop's (80), above
+#: every normal task. Its frames feed the control loop's estimate and frame watchdogs (0.1 s).
+#: At ``nice`` -5 beside the GUI's software rendering on 2 cores, a frame that takes 3-5 ms
+#: alone took 9-17 ms (up to 45 ms in the reaches): a normal task preempted by the control loop
+#: waits on that CPU instead of moving to the other, and the surface was held 2-15 times a
+#: minute. A real-time task is moved at once; it sleeps between frames (~30 % of one core).
+#: Set once the worker is built (its start-up, ~1 s of scene building, runs at ``WORKER_NICE``).
+WORKER_FIFO_PRIORITY = 40
+#: ``nice`` value of the worker process while it builds, and for good where ``SCHED_FIFO`` is
+#: refused (negative: ahead of the GUI, which gives way too: ``app.commands.app.GUI_NICE``),
+#: set as is. Needs root (or CAP_SYS_NICE); refused, it keeps the GUI's.
 WORKER_NICE = -5
 
 
@@ -177,12 +184,15 @@ def run_worker(
     requests: Any,
     stop: Any,
     session: SessionAttach | None = None,
+    own_process: bool = False,
 ) -> None:
     """Run the simulated data path until ``stop`` is set; one :class:`FramePacket` per frame.
 
     ``conn`` is the sending end of a pipe, ``requests`` a queue of ``(version, LiveConfig)``,
     :class:`RecordRequest`, :class:`ContextRequest` and :class:`SessionAttach`, ``stop`` an
-    event. Runs in a worker process (or thread); everything it builds is its own. With
+    event. Runs in a worker process (``own_process``: its frame loop then takes
+    ``SCHED_FIFO`` :data:`WORKER_FIFO_PRIORITY` where permitted) or on a thread (it shares the
+    window's interpreter lock: ``nice`` only); everything it builds is its own. With
     ``session`` the cameras see the control process's robot and every estimate goes to it.
     """
     worker: _Worker | None = None
@@ -194,6 +204,8 @@ def run_worker(
         worker = _Worker(settings, config, conn, requests, stop)
         if session is not None:
             worker.attach(session)
+        if own_process:
+            try_sched_fifo(WORKER_FIFO_PRIORITY, fallback_nice=WORKER_NICE)
         worker.run()
     except (BrokenPipeError, EOFError, OSError):
         return  # the receiver is gone: nobody to tell

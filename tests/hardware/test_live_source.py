@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -47,6 +48,36 @@ def test_snapshots_are_numbered_frozen_and_complete(source: LiveSource) -> None:
         with pytest.raises(ValueError):
             array[0] = 0  # read-only: the GUI cannot alter what the worker published
     assert snap.truth is not None and len(snap.body_offsets) == len(source.geometry.bodies)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getscheduler"), reason="Linux scheduling only")
+def test_the_worker_process_runs_its_frames_real_time_and_a_worker_thread_does_not() -> None:
+    """In a process of its own the worker takes SCHED_FIFO below the control loop once built
+    (root) or nice -5 (refused); on the window's thread it stays a normal thread."""
+    from hapticloud.hardware.live.worker import WORKER_FIFO_PRIORITY, WORKER_NICE
+
+    src = LiveSource(FAST)
+    src.start()
+    try:
+        _wait(lambda: src.latest() is not None)
+        pid = src._worker.pid
+        if os.geteuid() == 0:
+            assert os.sched_getscheduler(pid) == os.SCHED_FIFO
+            assert os.sched_getparam(pid).sched_priority == WORKER_FIFO_PRIORITY < 80
+        else:
+            assert os.sched_getscheduler(pid) != os.SCHED_FIFO
+    finally:
+        src.close()
+    src = LiveSource(FAST, in_process=True)
+    src.start()
+    try:
+        _wait(lambda: src.latest() is not None)
+        tid = src._worker.native_id
+        assert os.sched_getscheduler(tid) != os.SCHED_FIFO
+        if os.geteuid() == 0:
+            assert os.getpriority(os.PRIO_PROCESS, tid) == WORKER_NICE
+    finally:
+        src.close()
 
 
 def test_config_request_reaches_the_pipelines(source: LiveSource) -> None:
