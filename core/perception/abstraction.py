@@ -196,6 +196,9 @@ class SurfaceFit:
     #: prediction uncertainty there: large where the points leave it to extrapolate). 0 when
     #: the method has no error model (the paper's shells, the nearest point).
     height_se_m: float = 0.0
+    #: Share of the points near the fitted surface that its robust weights kept (1 when the
+    #: method weighs none): a fit that keeps a minority models part of what it was given.
+    inliers: float = 1.0
 
     def __post_init__(self) -> None:
         c, ok_c = _vec(self.centroid)

@@ -205,12 +205,16 @@ def quadric_surface(
                 break  # no wide fit: the fallback answers (a narrower one alone is not checked)
         elif isinstance(best, str):
             best = result
-        elif (
-            result.quality > best.quality
-            and result.residual_m < _NARROWED_RESIDUAL * best.residual_m
+        elif result.quality > best.quality and (
+            result.residual_m < _NARROWED_RESIDUAL * best.residual_m
+            or (best.inliers < _MINORITY and result.inliers >= _NARROWED_MIN_INLIERS)
         ):
             # Structure smoothed over leaves the narrower fit with a much smaller residual;
-            # noise (a far body) does not, and fewer points would only make it noisier.
+            # noise (a far body) does not, and fewer points would only make it noisier. A wider
+            # fit that kept only a minority of its points (three surfaces at a corner: chin,
+            # neck, chest) has its residual from that minority, so it cannot be compared; a
+            # narrower fit that explains nearly all of its own points answers instead (noise
+            # leaves a narrower fit's points as scattered as the wider one's).
             best = result
         if not isinstance(best, str) and best.quality >= qc.narrow_below_quality:
             break
@@ -286,6 +290,7 @@ def _quadric_fit(
         surfaces,
         fit.scale,
         height_se,
+        fit.inliers,
     )
 
 
@@ -410,8 +415,12 @@ def _rest_nearer(
     return ""
 
 
-#: A narrower fit answers only if its residual scale is below this share of the wider one's.
+#: A narrower fit answers only if its residual scale is below this share of the wider one's,
 _NARROWED_RESIDUAL = 0.6
+#: or if the wider fit's robust weights kept less than this share of the points near its
+#: surface while the narrower one kept at least ``_NARROWED_MIN_INLIERS`` of its own.
+_MINORITY = 0.5
+_NARROWED_MIN_INLIERS = 0.9
 #: A second surface must explain this share of its points at the noise scale (not outliers).
 _MIN_SECOND_INLIERS = 0.7
 #: Refits of each surface at a crease with the robust scale held at the measured noise.

@@ -123,7 +123,9 @@ def test_noise_alone_does_not_narrow_the_fit() -> None:
 # Frames of the demo (`hapticloud run demo`, the estimator's input after stages A-D, with the
 # truth): "medial" and "hidden", the hand between the torso's top edge and the chin, about 70 mm
 # from both; "hole", the hand on the cheek hiding the 28 mm around the closest point (the front
-# camera decimated 8x, `bench safety`).
+# camera decimated 8x, `bench safety`); "corner", the app's live demo (right45, recorded by
+# `hapticloud app --record`), the hand 72 mm from the torso's top edge, the chin and the neck
+# about as near.
 _SWITCH_FRAMES = Path(__file__).parent / "data" / "demo_body_switch_frames.npz"
 
 
@@ -160,6 +162,21 @@ def test_the_nearest_patch_gives_way_when_the_other_points_make_a_nearer_surface
     monkeypatch.setattr(curvature, "_rest_nearer", lambda *args: "")
     unchecked = estimate_surface(points, hip, axis)
     assert unchecked.quality >= 0.5 and unchecked.d_proj(hip, 0.0) - truth > 5e-3
+
+
+def test_a_narrower_fit_answers_where_the_wide_fit_kept_a_minority_of_its_points() -> None:
+    # Three surfaces in the workspace: the wide fit keeps 13 % of its points, so its residual
+    # (from those) is small and the narrower fit, which explains nearly all of its own, failed
+    # the residual rule. Both cameras lost their estimates so for 84 ms in the app: a hold.
+    points, hip, axis, truth = _switch_frame("corner")
+    wide = estimate_surface(
+        points, hip, axis, AbstractionConfig().replace_path("quadric.narrowings", 0)
+    )
+    assert wide.inliers < 0.5 and wide.quality < 0.5
+    fit = estimate_surface(points, hip, axis)
+    assert fit.valid and fit.quality >= 0.5 and fit.inliers >= 0.9
+    err = fit.d_proj(hip, 0.0) - truth
+    assert -1e-3 < err < 0.5e-3  # on the safe side, within a millimetre
 
 
 def test_a_narrower_fit_does_not_bridge_a_hole_wider_than_its_bandwidth() -> None:
