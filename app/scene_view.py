@@ -807,8 +807,9 @@ class SceneView(QtWidgets.QWidget):
             elif isinstance(prim, Capsule):
                 axis = prim.b - prim.a
                 length = float(np.linalg.norm(axis))
-                # To the micrometre: a link's length from the joint angles wobbles in its last bits.
-                dims = (round(length, 6), round(float(prim.radius), 6))
+                # To the micrometre (a link's length from the joint angles wobbles in its last
+                # bits); a radius under a micrometre is drawn as one.
+                dims = (round(length, 6), max(round(float(prim.radius), 6), 1e-6))
                 if dims != self._capsule_dims.get(name):
                     self._capsule_dims[name] = dims
                     local = np.array(self._capsule.points)

@@ -115,10 +115,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 #: ``nice`` value the live window's process takes before it builds the window (so its render
 #: threads inherit it): on a machine short of cores the display gives way to the perception
-#: worker (``WORKER_NICE``) whose frames the control loop's watchdogs wait for; the control
-#: loop runs SCHED_FIFO above both (or nice ``FALLBACK_NICE``). Only for root: the processes
-#: the window starts inherit its value, and without privilege they could not set theirs back.
-#: A process already nicer keeps its value.
+#: worker (SCHED_FIFO ``WORKER_FIFO_PRIORITY``, or nice ``WORKER_NICE`` where refused) whose
+#: frames the control loop's watchdogs wait for; the control loop runs SCHED_FIFO above both (or
+#: nice ``FALLBACK_NICE``). Only for root: the processes the window starts inherit its value,
+#: and without privilege they could not set theirs back. A process already nicer keeps its value.
 GUI_NICE = 5
 
 
