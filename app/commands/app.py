@@ -105,7 +105,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--enable",
         action="store_true",
-        help="enable the session (torque on) as soon as it is ready, as the Enable button does",
+        help="enable the session (torque on) as the Enable button does, as soon as it is ready "
+        "and sees: READY, the space around the HIP known and every watchdog quiet",
     )
     from .app_recording import add_recording_options
 

@@ -68,6 +68,15 @@ def scene_tables(scene: str) -> dict[str, Any]:
     return {"haptics": loaded.config.haptics, "controller": scene_controller_config(loaded)}
 
 
+def ready_to_enable(snap: Any) -> bool:
+    """Whether a control snapshot shows a session that can be enabled now, as ``--enable`` asks:
+    READY, the space around the HIP known (a fresh surface, or proven free) and every watchdog
+    quiet. Enabled as soon as it was READY, the first command's session could meet its cameras'
+    first estimates on the way: the frame watchdog then held the surface (HOLD_SURFACE) within
+    0.3 s of enabling."""
+    return snap.state == "ready" and snap.space == "known" and snap.reaction == "NONE"
+
+
 class Session:
     """The control process of a scene, run and watched from the GUI process.
 
@@ -82,8 +91,9 @@ class Session:
         simulation clock with the loop, :class:`~hapticloud.hardware.control.child.SimClock`)
         or ``"process"`` (their own process on wall time, like real drives).
     enable_when_ready
-        Enable once, the first time the session reports READY (``hapticloud app --enable``: the
-        user asked for torque on the command line).
+        Enable once, the first time the session reports READY with its surface known and its
+        watchdogs quiet (:func:`ready_to_enable`; ``hapticloud app --enable``: the user asked
+        for torque on the command line).
     process_kwargs
         More :class:`ControlProcess` arguments; by default :data:`APP_PROCESS_KWARGS`.
     """
@@ -224,7 +234,7 @@ class Session:
             return None
         for listener in self.listeners:
             listener(snaps)
-        if self._enable_when_ready and snaps[-1].state == "ready":
+        if self._enable_when_ready and ready_to_enable(snaps[-1]):
             self._enable_when_ready = False
             self.enable()
         rows = np.empty((len(snaps), len(CONTROL_COLUMNS)))
