@@ -41,7 +41,8 @@ POLL_MS = 15
 #: The plots are redrawn at most this often (s). Every widget repaint in a window holding an
 #: OpenGL widget recomposes the whole window (in software GL here). At 10 Hz their painting and
 #: feeding took ~45 % of the window's thread on the 2-core machine (py-spy), more than the 3D
-#: view's; at 5 Hz they still read as live and the view went from ~20.6 to 22.7 fps.
+#: view's; at 5 Hz they still read as live, and the time saved goes to the perception worker
+#: (real-time since), not to more view frames (docs/benchmarks.md, "The worker in real time").
 PLOT_PERIOD_S = 0.2
 ESTOP_KEYS = (QtCore.Qt.Key.Key_Escape, QtCore.Qt.Key.Key_Space)
 
