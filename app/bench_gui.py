@@ -10,9 +10,9 @@ point, the robot and the true surface. Nothing is simulated: the figures are the
 
 One update is: build the snapshot (its ``captured`` time is taken then), ``show_snapshot`` (the
 in-place actor update, timed), then the event loop runs until the paint it scheduled has
-returned from ``paintGL`` (the VTK render, timed). Frame-to-screen latency is from the snapshot's
-``captured`` time to the end of that ``paintGL``; frame-to-flush also includes the rest of that
-event-loop turn (Qt composites the GL widget's frame into the window and flushes it to X).
+returned (the VTK render, its read-back and its drawing, timed). Frame-to-screen latency is from
+the snapshot's ``captured`` time to the end of that paint; frame-to-flush also includes the rest
+of that event-loop turn (Qt flushes the window's painted region to X).
 Updates per second are counted in 1 s windows of wall time after a short warm-up; the median
 window is reported.
 
@@ -190,18 +190,15 @@ def measure(duration_s: float) -> dict[str, float | int]:
     for key in ("clouds", "bodies", "truth", "robot", "shells", "estimates", "fused"):
         view.set_layer_visible(key, True, render=False)
 
-    paints: list[tuple[float, float]] = []  # (start, end) of each paintGL, perf_counter
-    paint_gl = view.plotter.paintGL
+    paints: list[tuple[float, float]] = []  # (start, end) of each paint, perf_counter
 
-    def timed_paint() -> None:
-        a = time.perf_counter()
-        paint_gl()
-        paints.append((a, time.perf_counter()))
+    def timed_paint(start: float, end: float) -> None:
+        paints.append((start, end))
 
-    view.plotter.paintGL = timed_paint
+    view.canvas.on_paint.append(timed_paint)
     try:
         deadline = time.monotonic() + 10.0
-        while not view.plotter.isVisible() and time.monotonic() < deadline:
+        while not view.canvas.isVisible() and time.monotonic() < deadline:
             app.processEvents()
         view.show_snapshot(frames.snapshot(0.0))
         while not paints and time.monotonic() < deadline:
@@ -242,7 +239,7 @@ def measure(duration_s: float) -> dict[str, float | int]:
             k += 1
         actors_added = view.actor_count() - actors_before
     finally:
-        view.plotter.paintGL = paint_gl
+        view.canvas.on_paint.remove(timed_paint)
         view.close_view()
         view.deleteLater()
         app.processEvents()
@@ -342,13 +339,13 @@ def main(
             f"  updates/s (median of 1 s windows): {result['updates_per_s']}  (target >= 30)\n"
             f"  actor update: {result['update_ms_median']} ms median, "
             f"{result['update_ms_p90']} ms p90\n"
-            f"  render (paintGL): {result['render_ms_median']} ms median, "
+            f"  render (paint): {result['render_ms_median']} ms median, "
             f"{result['render_ms_p90']} ms p90\n"
             f"  frame-to-screen: {result['frame_to_screen_ms_median']} ms median, "
-            f"{result['frame_to_screen_ms_p90']} ms p90 (to the end of paintGL)\n"
+            f"{result['frame_to_screen_ms_p90']} ms p90 (to the end of the paint)\n"
             f"  frame-to-flush: {result['frame_to_flush_ms_median']} ms median, "
             f"{result['frame_to_flush_ms_p90']} ms p90 (to the end of the event-loop turn that "
-            "painted: Qt's compositing of the GL widget and the flush to X included)\n"
+            "painted: Qt's flush to X included)\n"
             f"  actors added during updates: {result['actors_added']}\n"
             f"  with the control process running too: {result['with_control_updates_per_s']} "
             f"updates/s, render {result['with_control_render_ms_median']} ms median, "

@@ -38,11 +38,10 @@ from .status import StatusPanel
 #: How often the window polls the source for a new snapshot (ms): up to ~60 Hz; a paint happens
 #: only when there is a new snapshot.
 POLL_MS = 15
-#: The plots are redrawn at most this often (s). Every widget repaint in a window holding an
-#: OpenGL widget recomposes the whole window (in software GL here). At 10 Hz their painting and
-#: feeding took ~45 % of the window's thread on the 2-core machine (py-spy), more than the 3D
-#: view's; at 5 Hz they still read as live, and the time saved goes to the perception worker
-#: (real-time since), not to more view frames (docs/benchmarks.md, "The worker in real time").
+#: The plots are redrawn at most this often (s). At 10 Hz their painting and feeding took ~45 %
+#: of the window's thread on the 2-core machine (py-spy, while the window was still composed
+#: through OpenGL as a whole); at 5 Hz they still read as live, and the time saved goes to the
+#: real-time perception worker (docs/benchmarks.md, "The worker in real time").
 PLOT_PERIOD_S = 0.2
 ESTOP_KEYS = (QtCore.Qt.Key.Key_Escape, QtCore.Qt.Key.Key_Space)
 
@@ -273,7 +272,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._shown_seq = -1
         self.shown: Snapshot | None = None
         self._paints: deque[float] = deque(maxlen=61)
-        self.view.plotter.installEventFilter(self)
+        self.view.canvas.installEventFilter(self)
         self.source: SnapshotSource | None = None
         self._make_session = make_session
         self.session: Session | None = None
@@ -486,7 +485,7 @@ class MainWindow(QtWidgets.QMainWindow):
         return (len(self._paints) - 1) / span if span > 0 else math.nan
 
     def eventFilter(self, obj: QtCore.QObject, event: QtCore.QEvent) -> bool:  # noqa: N802
-        if obj is self.view.plotter and event.type() == QtCore.QEvent.Type.Paint:
+        if obj is self.view.canvas and event.type() == QtCore.QEvent.Type.Paint:
             self._paints.append(time.monotonic())
         return False
 

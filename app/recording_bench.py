@@ -50,7 +50,7 @@ def gui_seek_bench(
     t0 = time.monotonic()
     window = RecordingWindow(RecordingSource.open(path))
     clock = _PaintClock()
-    window.view.plotter.installEventFilter(clock)
+    window.view.canvas.installEventFilter(clock)
     window.resize(*size)
     window.show()
     try:

@@ -269,8 +269,8 @@ class RecordingWindow(QtWidgets.QMainWindow):
         """Show the newest snapshot, move the timeline, take re-run rows (timer slot).
 
         The 3D view gets a new snapshot at once; the plots, the status bar and the dock follow
-        at the next poll (at most every :data:`PLOT_PERIOD_S`): every widget repaint recomposes
-        the window, and after a seek the view's paint comes first."""
+        at the next poll (at most every :data:`PLOT_PERIOD_S`): after a seek the view's paint
+        comes first."""
         rerun = self.source.player.rerun
         if rerun is not None and not rerun.finished:
             rerun.poll()

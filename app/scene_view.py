@@ -1,4 +1,5 @@
-"""The 3D view: one object owns the pyvistaqt interactor and every named actor in it.
+"""The 3D view: one object owns the pyvista plotter, the canvas that shows it, and every named
+actor in it.
 
 Actors are created once, when the scene's geometry is known (:meth:`SceneView.set_geometry`), and
 a frame (:meth:`SceneView.show_snapshot`) only writes new point arrays or transforms into them and
@@ -6,10 +7,10 @@ asks for one repaint. Re-adding actors per frame costs about 30 ms (the issue's 
 in-place update of two 5000-point clouds and every overlay costs 3.4 ms (median, measured by
 ``tests/app/test_app_view_rate.py``); the paint after it is the rest of a frame.
 
-Why ``update()`` and not ``render()``: pyvistaqt's ``QOpenGLWidget`` renders VTK in every
-``paintGL``, so ``plotter.render()`` followed by the repaint it schedules renders twice (measured
-17 vs 28 frames/s at 1280x800 in software GL). ``QWidget.update()`` schedules exactly one paint,
-and Qt coalesces several requests between two event-loop turns into one.
+Why ``update()`` and not ``render()``: the canvas (:class:`~hapticloud.app.view_canvas.ViewCanvas`)
+renders VTK in every paint, so ``plotter.render()`` followed by a repaint renders twice.
+``QWidget.update()`` schedules exactly one paint, and Qt coalesces several requests between two
+event-loop turns into one.
 
 Layers and their colours are named in :data:`LAYERS`; the window builds its toggles from it.
 """
@@ -29,8 +30,9 @@ from hapticloud.core.haptics.unknown import UnknownSpaceConfig
 from hapticloud.hardware.live.contract import CameraFrame, SceneGeometry, Snapshot, SourceState
 from numpy.typing import NDArray
 from PyQt6 import QtCore, QtWidgets
-from pyvistaqt import QtInteractor
 from vtkmodules.vtkCommonMath import vtkMatrix4x4
+
+from .view_canvas import ViewCanvas
 
 FloatArray = NDArray[np.float64]
 
@@ -112,84 +114,6 @@ CAPTION_PERIOD_S = 0.25
 _SHELL_NORMAL_M = 0.025
 _CIRCLE_SEGMENTS = 48
 _EMPTY = np.zeros((1, 3))
-
-
-#: The 3D view's render scale under software OpenGL (``auto``): VTK renders 0.75 x 0.75 of the
-#: widget's pixels and the paint stretches them over it. llvmpipe's shading is most of the GUI's
-#: CPU (perf on the demo: 65 %, the JIT-compiled shaders and swrast); the first command's view
-#: then runs at 19.6-23.4 fps (12.8 before) on the 2-core machine beside the cameras and the
-#: control loop. Point sizes and line widths follow the scale and text the DPI, so only
-#: sharpness changes. A GPU renders at full scale.
-SOFTWARE_RENDER_SCALE = 0.75
-_SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer")
-
-
-def software_opengl(capabilities: str) -> bool:
-    """Whether VTK's capability report names a software OpenGL renderer (Mesa's llvmpipe...).
-
-    >>> software_opengl("OpenGL renderer string:  llvmpipe (LLVM 15.0.6, 256 bits)")
-    True
-    >>> software_opengl("OpenGL renderer string:  NVIDIA GeForce RTX 3060/PCIe/SSE2")
-    False
-    """
-    for line in capabilities.splitlines():
-        if "renderer string" in line.lower():
-            return any(name in line.lower() for name in _SOFTWARE_RENDERERS)
-    return False
-
-
-class _ScaledInteractor(QtInteractor):
-    """A :class:`QtInteractor` whose VTK render window has ``render_scale`` times the widget's
-    device pixels (``None``: decided at the first resize, from the OpenGL renderer); the paint
-    stretches it over the widget with a linear filter, and mouse positions scale the same way."""
-
-    def __init__(self, parent: QtWidgets.QWidget, scale: float | None, **kwargs: object) -> None:
-        self.render_scale: float | None = scale
-        self.on_scale: list[object] = []  # callbacks once the scale is known
-        super().__init__(parent, **kwargs)
-
-    def _ratio(self) -> float:
-        return self.devicePixelRatioF() * (self.render_scale or 1.0)
-
-    def resizeGL(self, w: int, h: int) -> None:  # noqa: N802
-        rw = self._RenderWindow
-        if rw is None:
-            return
-        if self.render_scale is None:  # a current context here: ask which renderer it is
-            soft = software_opengl(rw.ReportCapabilities())
-            self.render_scale = SOFTWARE_RENDER_SCALE if soft else 1.0
-            for callback in self.on_scale:
-                callback(self.render_scale)  # type: ignore[operator]
-        ratio = self._ratio()
-        dw, dh = max(1, round(w * ratio)), max(1, round(h * ratio))
-        iren = rw.GetInteractor()
-        if iren is not None:
-            iren.UpdateSize(dw, dh)
-            iren.InvokeEvent("ConfigureEvent")
-        else:
-            rw.SetSize(dw, dh)
-        rw.SetDPI(round(72 * ratio))
-
-    def _setEventInformation(  # noqa: N802
-        self,
-        x: int,
-        y: int,
-        ctrl: bool,
-        shift: bool,
-        key: str,
-        repeat: int = 0,
-        keysum: str | None = None,
-    ) -> None:
-        ratio = self._ratio()  # VTK's y axis points up; its pixels are the render window's
-        self._Iren.SetEventInformation(
-            round(x * ratio),
-            round((self.height() - y - 1) * ratio),
-            ctrl,
-            shift,
-            key,
-            repeat,
-            keysum,
-        )
 
 
 def _hex_rgb(colour: str) -> tuple[int, int, int]:
@@ -284,7 +208,8 @@ class SceneView(QtWidgets.QWidget):
     """
 
     #: The render scale of views made without one: ``None`` is ``auto`` (see
-    #: :data:`SOFTWARE_RENDER_SCALE`); ``hapticloud app --render-scale`` sets it.
+    #: :data:`~hapticloud.app.view_canvas.SOFTWARE_RENDER_SCALE`); ``hapticloud app
+    #: --render-scale`` sets it.
     default_render_scale: float | None = None
 
     def __init__(
@@ -297,21 +222,19 @@ class SceneView(QtWidgets.QWidget):
         # depth peeling is off) costs ~25 %. Without it translucent layers blend in actor order,
         # which for these faint overlays is indistinguishable.
         scale = self.default_render_scale if render_scale is None else render_scale
-        self.plotter = _ScaledInteractor(
-            self, scale, auto_update=False, multi_samples=0, lighting="none"
-        )
+        self.plotter = pv.Plotter(off_screen=True, lighting="none")
+        self.plotter.ren_win.SetMultiSamples(0)
         self.plotter.renderer.SetUseOIT(False)
         self.plotter.add_light(pv.Light(light_type="headlight", intensity=0.75))
         # Camera-light coordinates: the camera at +z looking at the origin, +y up: upper left.
         key = pv.Light(position=(-0.5, 0.9, 1.0), light_type="camera light", intensity=0.45)
         self.plotter.add_light(key)
         self.plotter.set_background(BACKGROUND[0], top=BACKGROUND[1])
-        # No keyboard focus: VTK's own keys ('w' wireframe, 'q'/'e' quit the interactor, ...)
-        # would otherwise act on the scene; mouse interaction does not need focus.
-        self.plotter.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)
+        #: The widget that shows the plotter's frames and hands it the mouse.
+        self.canvas = ViewCanvas(self, self.plotter, scale)
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
-        layout.addWidget(self.plotter)
+        layout.addWidget(self.canvas)
         self.setMinimumSize(320, 240)
         self._meshes: dict[str, pv.PolyData] = {}
         self._actors: dict[str, pv.Actor] = {}
@@ -337,13 +260,13 @@ class SceneView(QtWidgets.QWidget):
         # Point sizes and line widths at full scale, applied x the render scale (text follows
         # the render window's DPI, which the interactor scales).
         self._sizes: dict[str, tuple[float, float]] = {}
-        self.plotter.on_scale.append(self._rescale)
+        self.canvas.on_scale.append(self._rescale)
 
     @property
     def render_scale(self) -> float | None:
         """The VTK render window's pixels per widget pixel (``None`` until the first resize
         decides ``auto``)."""
-        return self.plotter.render_scale
+        return self.canvas.render_scale
 
     def _rescale(self, scale: float) -> None:
         for name in self._sizes:
@@ -351,7 +274,7 @@ class SceneView(QtWidgets.QWidget):
 
     def _size_actor(self, name: str) -> None:
         point, line = self._sizes[name]
-        scale = self.plotter.render_scale or 1.0
+        scale = self.canvas.render_scale or 1.0
         prop = self._actors[name].GetProperty()
         prop.SetPointSize(point * scale)
         prop.SetLineWidth(line * scale)
@@ -680,7 +603,7 @@ class SceneView(QtWidgets.QWidget):
 
     def request_render(self) -> None:
         """Schedule one paint (which renders VTK once); repeated requests coalesce."""
-        self.plotter.update()
+        self.canvas.update()
 
     # ----- per frame ----------------------------------------------------------------------------
     def show_snapshot(self, snap: Snapshot) -> None:
@@ -954,11 +877,11 @@ class SceneView(QtWidgets.QWidget):
         (for screenshots and tests): VTK's frame stretched like the paint stretches it."""
         from .screenshot import qimage_from_rgb, qimage_to_array
 
-        rgb = np.asarray(self.plotter.screenshot(return_img=True))
-        ratio = self.plotter.devicePixelRatioF()
-        w, h = round(self.plotter.width() * ratio), round(self.plotter.height() * ratio)
+        rgb = self.canvas.frame()
+        ratio = self.canvas.devicePixelRatioF()
+        w, h = round(self.canvas.width() * ratio), round(self.canvas.height() * ratio)
         if rgb.shape[:2] == (h, w):
-            return rgb
+            return rgb.copy()
         smooth = QtCore.Qt.TransformationMode.SmoothTransformation
         stretched = qimage_from_rgb(rgb).scaled(
             w, h, QtCore.Qt.AspectRatioMode.IgnoreAspectRatio, smooth
@@ -967,7 +890,7 @@ class SceneView(QtWidgets.QWidget):
 
     def close_view(self) -> None:
         """Release the VTK render window (call before the widget is destroyed)."""
-        self.plotter.close()
+        self.canvas.release()
 
 
 def _blend(colour: str, other: str, amount: float) -> str:

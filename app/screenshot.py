@@ -1,9 +1,8 @@
 """Screenshots of the window (3D view included), and running a command line's window.
 
-``QWidget.grab()`` renders widgets through Qt's backing store; whether it includes an OpenGL
-widget's frame depends on the platform and the moment. So :func:`grab_window` grabs the window
-and then paints the 3D view's own rendering (``plotter.screenshot``, read back from VTK's frame
-buffer) over the view's rectangle: the PNG always shows what VTK drew.
+``QWidget.grab()`` renders the widgets through Qt's raster paint, the 3D view included: its
+canvas (:class:`~hapticloud.app.view_canvas.ViewCanvas`) renders VTK off screen and paints the
+frame as an image, so the PNG shows what VTK drew.
 
 :func:`run_window` runs a window until it closes or for a set time, then saves its screenshot;
 where it shows (a virtual display for a headless run) is :mod:`hapticloud.app.commands.display`.
@@ -15,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from PyQt6 import QtCore, QtGui, QtWidgets
+from PyQt6 import QtGui, QtWidgets
 
 
 def qimage_from_rgb(rgb: NDArray[np.uint8]) -> QtGui.QImage:
@@ -35,26 +34,9 @@ def qimage_to_array(image: QtGui.QImage) -> NDArray[np.uint8]:
 
 
 def grab_window(window: QtWidgets.QWidget) -> QtGui.QImage:
-    """The whole window as an image, the VTK view painted in from its own frame buffer."""
+    """The whole window as an image, the 3D view included (its canvas paints VTK's frame)."""
     QtWidgets.QApplication.processEvents()
-    image = window.grab().toImage()
-    view = getattr(window, "view", None)
-    plotter = getattr(view, "plotter", None)
-    if plotter is not None and plotter.isVisible():
-        rgb = np.asarray(plotter.screenshot(return_img=True))
-        frame = qimage_from_rgb(rgb)
-        ratio = image.devicePixelRatio() or 1.0
-        top_left = plotter.mapTo(window, QtCore.QPoint(0, 0))
-        target = QtCore.QRect(
-            round(top_left.x() * ratio),
-            round(top_left.y() * ratio),
-            round(plotter.width() * ratio),
-            round(plotter.height() * ratio),
-        )
-        painter = QtGui.QPainter(image)
-        painter.drawImage(target, frame)
-        painter.end()
-    return image
+    return window.grab().toImage()
 
 
 def save_window(window: QtWidgets.QWidget, path: Path) -> Path:

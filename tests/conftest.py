@@ -1,6 +1,6 @@
 """Shared fixtures. GUI tests get a display that can do OpenGL, started here if there is none.
 
-Qt's ``offscreen`` platform has no OpenGL, and the pyvistaqt view is an OpenGL widget; so a GUI
+Qt's ``offscreen`` platform has no OpenGL, and the 3D view renders VTK through GLX; so a GUI
 test needs an X display. With ``DISPLAY`` set (a desktop, ``xvfb-run``) it is used as is;
 without one, the ``gui_display`` fixture starts ``Xvfb`` for the session (CI runs plain
 ``pytest``). pytest-qt's ``qapp`` depends on ``qapp_args``, which depends on ``gui_display`` here,
@@ -58,6 +58,11 @@ def _destroy_qapplication() -> None:
     app.closeAllWindows()
     app.processEvents()
     sip.delete(app)
+    # A 3D view's off-screen render window holds its own X connection; one a test left open
+    # would end the process (XIO) when the Xvfb stops.
+    pyvista = sys.modules.get("pyvista")
+    if pyvista is not None:
+        pyvista.close_all()
 
 
 @pytest.fixture(scope="session")

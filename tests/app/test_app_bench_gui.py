@@ -32,7 +32,7 @@ KEYS = (
 
 def test_bench_gui_json_without_a_display() -> None:
     pytest.importorskip("PyQt6", reason="the app extras are not installed")
-    pytest.importorskip("pyvistaqt", reason="the app extras are not installed")
+    pytest.importorskip("pyvista", reason="the app extras are not installed")
     if shutil.which("Xvfb") is None:
         pytest.skip("no Xvfb to start a display (apt-get install xvfb)")
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}

@@ -2,7 +2,7 @@
 
 Snapshots come from the live demo, their clouds resampled to 5000 points per camera and four
 paper-method shells added per camera; each update is ``show_snapshot`` followed by the one
-paint it schedules (measured until ``paintGL`` returned). Run with
+paint it schedules (measured until the paint returned). Run with
 ``pytest -m slow tests/app/test_app_view_rate.py -s`` to see the figures.
 """
 
@@ -85,13 +85,11 @@ def test_view_update_rate_with_two_5000_point_clouds(qtbot) -> None:
     view.show()
     qtbot.waitExposed(view)
     paints = [0]
-    paint_gl = view.plotter.paintGL
 
-    def counted() -> None:
-        paint_gl()
+    def counted(start: float, end: float) -> None:
         paints[0] += 1
 
-    view.plotter.paintGL = counted
+    view.canvas.on_paint.append(counted)
     view.show_snapshot(snaps[0])
     qtbot.waitUntil(lambda: paints[0] > 0)
     actors = view.actor_count()

@@ -64,7 +64,7 @@ def test_window_opens_on_the_demo_and_the_view_is_not_blank(live) -> None:
     assert window.windowTitle() == "hapticloud — demo"
     image = window.view.image()
     h, w, _ = image.shape
-    assert (h, w) == (window.view.plotter.height(), window.view.plotter.width())
+    assert (h, w) == (window.view.canvas.height(), window.view.canvas.width())
     assert image.std() > 20  # not a flat background
     assert len(np.unique(image.reshape(-1, 3) // 8, axis=0)) > 100
     # The cameras' kept clouds are drawn in their colours (they overlap on the same surface).

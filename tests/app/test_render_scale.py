@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from hapticloud.app import cli
-from hapticloud.app.scene_view import SOFTWARE_RENDER_SCALE, SceneView
+from hapticloud.app.scene_view import SceneView
+from hapticloud.app.view_canvas import SOFTWARE_RENDER_SCALE
 from hapticloud.hardware.live.scenes import SimSettings, scene_geometry
 
 
@@ -24,8 +25,8 @@ def _view(qtbot, scale: float | None) -> SceneView:
 def test_auto_renders_fewer_pixels_under_software_opengl_and_shows_them_full_size(qtbot) -> None:
     view = _view(qtbot, None)
     assert view.render_scale == SOFTWARE_RENDER_SCALE  # Xvfb: Mesa's llvmpipe
-    ratio = view.plotter.devicePixelRatioF()
-    w, h = view.plotter.width() * ratio, view.plotter.height() * ratio
+    ratio = view.canvas.devicePixelRatioF()
+    w, h = view.canvas.width() * ratio, view.canvas.height() * ratio
     rw_w, rw_h = view.plotter.render_window.GetSize()
     assert (rw_w, rw_h) == (round(w * SOFTWARE_RENDER_SCALE), round(h * SOFTWARE_RENDER_SCALE))
     assert view.image().shape == (round(h), round(w), 3)  # stretched like the paint
@@ -37,8 +38,8 @@ def test_auto_renders_fewer_pixels_under_software_opengl_and_shows_them_full_siz
 def test_scale_one_renders_every_pixel(qtbot) -> None:
     view = _view(qtbot, 1.0)
     assert view.render_scale == 1.0
-    ratio = view.plotter.devicePixelRatioF()
-    size = (round(view.plotter.width() * ratio), round(view.plotter.height() * ratio))
+    ratio = view.canvas.devicePixelRatioF()
+    size = (round(view.canvas.width() * ratio), round(view.canvas.height() * ratio))
     assert tuple(view.plotter.render_window.GetSize()) == size
     cloud = next(n for n in view.actor_names if n.startswith("cloud:"))
     assert view.actor(cloud).GetProperty().GetPointSize() == 4
