@@ -36,8 +36,12 @@ from .session_panel import STATE_STYLE, SessionPanel
 from .status import StatusPanel
 
 #: How often the window polls the source for a new snapshot (ms): up to ~60 Hz; a paint happens
-#: only when there is a new snapshot.
+#: only when there is a new snapshot. The recording window polls at this rate.
 POLL_MS = 15
+#: How often the live window polls (ms): at the cameras' 30 Hz, each poll shows both cameras'
+#: newest frames. Polled at ``POLL_MS``, the off-screen canvas painted 33-36 frames/s, a new frame
+#: for each camera's frame, which added the window's CPU and showed nothing more.
+LIVE_POLL_MS = 33
 #: The plots are redrawn at most this often (s). At 10 Hz their painting and feeding took ~45 %
 #: of the window's thread on the 2-core machine (py-spy, while the window was still composed
 #: through OpenGL as a whole); at 5 Hz they still read as live, and the time saved goes to the
@@ -292,7 +296,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.timer = QtCore.QTimer(self)
         self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
         self.timer.timeout.connect(self.poll)
-        self.timer.start(POLL_MS)
+        self.timer.start(LIVE_POLL_MS)
 
     # ----- layout -------------------------------------------------------------------------------
     def _build_toolbar(self) -> None:

@@ -126,8 +126,9 @@ class ViewCanvas(QtWidgets.QWidget):
 
     # ----- paint --------------------------------------------------------------------------------
     def _render(self) -> np.ndarray | None:
-        """Render the scene now: its ``(H, W, 3)`` RGB rows from the top, or None without a
-        frame (a render window not yet realised, or released)."""
+        """Render the scene now: its ``(H, W, 3)`` RGB rows as OpenGL stores them (bottom row
+        first), a view of the canvas's own buffer (reused frame after frame: no allocation per
+        frame), or None without a frame (a render window not yet realised, or released)."""
         window = self.plotter.ren_win
         if window is None:
             return None
@@ -137,20 +138,16 @@ class ViewCanvas(QtWidgets.QWidget):
         rgb = np.frombuffer(self._pixels, dtype=np.uint8)
         if rgb.size != w * h * 3:
             return None
-        return np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1])  # OpenGL's rows run upwards
-
-    @staticmethod
-    def _image(rows: np.ndarray) -> QtGui.QImage:
-        h, w, _ = rows.shape  # the image borrows ``rows``: keep it alive while it is used
-        return QtGui.QImage(rows.data, w, h, 3 * w, QtGui.QImage.Format.Format_RGB888)
+        return rgb.reshape(h, w, 3)
 
     def frame(self) -> np.ndarray:
-        """The scene rendered now, ``(H, W, 3)`` uint8 RGB at the render window's size."""
+        """The scene rendered now, ``(H, W, 3)`` uint8 RGB from the top row, at the render
+        window's size (a copy)."""
         rows = self._render()
         if rows is None:
             w, h = self.render_size()
             return np.full((h, w, 3), 255, np.uint8)
-        return rows
+        return rows[::-1].copy()
 
     def paintEvent(self, event: QtGui.QPaintEvent) -> None:  # noqa: N802
         start = time.perf_counter()
@@ -159,8 +156,13 @@ class ViewCanvas(QtWidgets.QWidget):
         if rows is None:
             painter.fillRect(self.rect(), QtGui.QColor("white"))
         else:
+            h, w, _ = rows.shape  # the image borrows the buffer for this paint only
+            image = QtGui.QImage(rows.data, w, h, 3 * w, QtGui.QImage.Format.Format_RGB888)
             painter.setRenderHint(QtGui.QPainter.RenderHint.SmoothPixmapTransform)
-            painter.drawImage(QtCore.QRectF(self.rect()), self._image(rows))
+            # OpenGL's rows run upwards: drawn upside down, no flipped copy.
+            painter.translate(0.0, float(self.height()))
+            painter.scale(1.0, -1.0)
+            painter.drawImage(QtCore.QRectF(0.0, 0.0, self.width(), self.height()), image)
         painter.end()
         if self.on_paint:
             end = time.perf_counter()
