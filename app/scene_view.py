@@ -881,7 +881,7 @@ class SceneView(QtWidgets.QWidget):
         ratio = self.canvas.devicePixelRatioF()
         w, h = round(self.canvas.width() * ratio), round(self.canvas.height() * ratio)
         if rgb.shape[:2] == (h, w):
-            return rgb.copy()
+            return rgb
         smooth = QtCore.Qt.TransformationMode.SmoothTransformation
         stretched = qimage_from_rgb(rgb).scaled(
             w, h, QtCore.Qt.AspectRatioMode.IgnoreAspectRatio, smooth
