@@ -3,6 +3,8 @@ closed-loop runs; the paper's experiments themselves are the slow studies at the
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hapticloud.core.errors import InputError
@@ -64,12 +66,21 @@ def test_a_repeated_intent_plays_again_every_period_and_must_return_to_its_start
         IntentScript(waypoints, repeat_s=-1.0)
 
 
-def test_a_repeated_scene_is_checked_where_it_loads() -> None:
+def test_a_repeated_scene_is_checked_where_it_loads(tmp_path) -> None:
     scene = load_scene("demo")
-    assert scene.config.patient.repeat_s == 0.0  # not by default yet (see the scene file)
-    ClosedLoopSim(scene.with_overrides({"patient.repeat_s": scene.config.scene.duration_s}))
+    assert scene.config.patient.repeat_s == 0.0  # not repeated (see the scene file)
+    # It ends resting on the chest, not where it starts: a repeat is refused, naming the field.
+    with pytest.raises(InputError, match=r"patient\.repeat_s = 10: the last waypoint is 77\.8 mm"):
+        ClosedLoopSim(scene.with_overrides({"patient.repeat_s": 10.0}))
+    # Its two reaches alone (without the rest) return to their start: they can repeat.
+    text = Path(scene.path).read_text()
+    rest = text.index("[[patient.waypoints]]\nposition_m = [0.123")
+    reaches = tmp_path / "reaches.toml"
+    reaches.write_text(text[:rest] + text[text.index("[fusion]") :])
+    twice = load_scene(reaches)
+    ClosedLoopSim(twice.with_overrides({"patient.repeat_s": 8.5}))
     with pytest.raises(InputError, match=r"patient\.repeat_s = 5: shorter than"):
-        ClosedLoopSim(scene.with_overrides({"patient.repeat_s": 5.0}))
+        ClosedLoopSim(twice.with_overrides({"patient.repeat_s": 5.0}))
 
 
 def test_posture_torque_does_not_accelerate_the_hip(model: RobotModel) -> None:
