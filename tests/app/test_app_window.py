@@ -187,6 +187,11 @@ def _restart(window: MainWindow, qtbot) -> None:
     old = window.source
     window.restart()
     qtbot.waitUntil(lambda: window.source.state is SourceState.RUNNING, timeout=TIMEOUT_MS)
+    # and shown: a test that stops it next waits for the window to show the stop
+    qtbot.waitUntil(
+        lambda: window.shown is not None and window.shown.state is SourceState.RUNNING,
+        timeout=TIMEOUT_MS,
+    )
     assert window.source is not old and not window.stopped
     assert old.state is SourceState.STOPPED and not old.alive
 
