@@ -650,8 +650,10 @@ class SceneView(QtWidgets.QWidget):
 
     def show_control(self, snap: object | None, *, render: bool = False) -> None:
         """The constraint force at the HIP from a control snapshot (``force_n``, ``hip_m``): an
-        arrow of :data:`FORCE_SCALE_M_PER_N`, hidden below :data:`FORCE_MIN_N` or without a
-        snapshot. Moves the one arrow actor; a paint only if ``render``."""
+        arrow of :data:`FORCE_SCALE_M_PER_N` from the HIP sphere's surface outward (from its
+        centre a few newtons stayed inside the sphere, over the fused normal), hidden below
+        :data:`FORCE_MIN_N` or without a snapshot. Moves the one arrow actor; a paint only if
+        ``render``."""
         if self._geometry is None:
             return
         force = np.asarray(getattr(snap, "force_n", (0.0, 0.0, 0.0)), dtype=np.float64)
@@ -660,7 +662,8 @@ class SceneView(QtWidgets.QWidget):
         if show:
             length = min(FORCE_SCALE_M_PER_N * magnitude, FORCE_MAX_M)
             hip = np.asarray(snap.hip_m, dtype=np.float64)  # type: ignore[union-attr]
-            self._move("force", _placement(hip, force, length))
+            start = hip + (self._geometry.r_hip_m / magnitude) * force
+            self._move("force", _placement(start, force, length))
         self.force_n = magnitude if show else 0.0
         self._visible("force", show, "force")
         if render:

@@ -69,9 +69,10 @@ FIELDS = {
     "estimate": ("estimate", "age of the newest estimate the loop's fusion admitted"),
     "cameras": ("camera ages", "time since each camera's newest frame reached the loop"),
     "margin": (
-        "min margin",
-        "smallest d_proj while enabled and the surface known (HIP surface to fused surface; a "
-        "held surface, grown toward the HIP while the cameras are late, does not count)",
+        "min margin (fused)",
+        "smallest d_proj while enabled and the surface known (HIP surface to fused surface, "
+        "not to the true one: the run's truth line says how near it really came; a held "
+        "surface, grown toward the HIP while the cameras are late, does not count)",
     ),
     "force": ("force", "force at the HIP beyond transparency (|F|)"),
     "dropped": ("dropped", "snapshots the loop could not write (pipe full) / lost"),

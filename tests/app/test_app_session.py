@@ -66,9 +66,13 @@ def test_force_arrow_moves_without_adding_actors(supervised) -> None:
     fake = SimpleNamespace(force_n=(0.0, 0.0, 10.0), hip_m=(0.3, 0.05, 0.98))
     view.show_control(fake)
     assert arrow.GetVisibility() and view.force_n == pytest.approx(10.0)
+    r_hip = window.source.geometry.r_hip_m
+    # It starts on the HIP sphere's surface, on the force's side (outside the sphere).
+    assert arrow.GetUserMatrix().GetElement(2, 3) == pytest.approx(0.98 + r_hip)
     first = np.array(arrow.GetUserMatrix().GetElement(2, 3))
     view.show_control(SimpleNamespace(force_n=(5.0, 0.0, 0.0), hip_m=(0.3, 0.05, 1.1)))
     assert arrow.GetUserMatrix().GetElement(2, 3) == pytest.approx(1.1) != first
+    assert arrow.GetUserMatrix().GetElement(0, 3) == pytest.approx(0.3 + r_hip)
     assert view.actor_count() == actors
     view.show_control(SimpleNamespace(force_n=(0.0, 0.0, 0.0), hip_m=(0.3, 0.05, 1.1)))
     assert not arrow.GetVisibility()
