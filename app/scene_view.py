@@ -65,6 +65,8 @@ FORCE_SCALE_M_PER_N = 0.005
 #: says "at least").
 FORCE_MIN_N = 0.05
 FORCE_MAX_M = 0.25
+#: A shorter force arrow keeps the cross-section of one this long (m).
+FORCE_MIN_WIDTH_M = 0.06
 REJECTED_GREY = (150, 150, 150)
 BACKGROUND = ("#fdfdfd", "#dfe6ee")
 
@@ -141,11 +143,15 @@ def _basis(direction: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     return np.array((ux, uy, uz)), np.array(v), np.array((x, y, z))
 
 
-def _placement(origin: FloatArray, x_axis: FloatArray, scale: float) -> FloatArray:
-    """4x4 matrix taking a template's +x axis to ``x_axis`` at ``origin``, scaled uniformly."""
+def _placement(
+    origin: FloatArray, x_axis: FloatArray, scale: float, width: float | None = None
+) -> FloatArray:
+    """4x4 matrix taking a template's +x axis to ``x_axis`` at ``origin``, scaled by ``scale``
+    along it and by ``width`` (default ``scale``) across it."""
     u, v, w = _basis(np.asarray(x_axis, dtype=np.float64))
+    across = scale if width is None else width
     m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2] = w * scale, u * scale, v * scale
+    m[:3, 0], m[:3, 1], m[:3, 2] = w * scale, u * across, v * across
     m[:3, 3] = origin
     return m
 
@@ -663,7 +669,9 @@ class SceneView(QtWidgets.QWidget):
             length = min(FORCE_SCALE_M_PER_N * magnitude, FORCE_MAX_M)
             hip = np.asarray(snap.hip_m, dtype=np.float64)  # type: ignore[union-attr]
             start = hip + (self._geometry.r_hip_m / magnitude) * force
-            self._move("force", _placement(start, force, length))
+            # As thick as a 60 mm arrow however short: a few newtons stay readable.
+            width = max(length, FORCE_MIN_WIDTH_M)
+            self._move("force", _placement(start, force, length, width))
         self.force_n = magnitude if show else 0.0
         self._visible("force", show, "force")
         if render:

@@ -69,6 +69,10 @@ def test_force_arrow_moves_without_adding_actors(supervised) -> None:
     r_hip = window.source.geometry.r_hip_m
     # It starts on the HIP sphere's surface, on the force's side (outside the sphere).
     assert arrow.GetUserMatrix().GetElement(2, 3) == pytest.approx(0.98 + r_hip)
+    # 10 N draw 50 mm along the force, as thick as a 60 mm arrow across it.
+    user = arrow.GetUserMatrix()
+    matrix = np.array([[user.GetElement(i, j) for j in range(3)] for i in range(3)])
+    assert np.linalg.norm(matrix, axis=0) == pytest.approx([0.05, 0.06, 0.06])
     first = np.array(arrow.GetUserMatrix().GetElement(2, 3))
     view.show_control(SimpleNamespace(force_n=(5.0, 0.0, 0.0), hip_m=(0.3, 0.05, 1.1)))
     assert arrow.GetUserMatrix().GetElement(2, 3) == pytest.approx(1.1) != first
