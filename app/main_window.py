@@ -35,12 +35,10 @@ from .scene_view import CAMERA_PRESETS, COLOR_MODES, LAYERS, SceneView
 from .session_panel import STATE_STYLE, SessionPanel
 from .status import StatusPanel
 
-#: How often the window polls the source for a new snapshot (ms): up to ~60 Hz; a paint happens
-#: only when there is a new snapshot. The recording window polls at this rate.
-POLL_MS = 15
-#: How often the live window polls (ms): at the cameras' 30 Hz, each poll shows both cameras'
-#: newest frames. Polled at ``POLL_MS``, the off-screen canvas painted 33-36 frames/s, a new frame
-#: for each camera's frame, which added the window's CPU and showed nothing more.
+#: How often the live window polls its source (ms): at the cameras' 30 Hz; a paint happens only
+#: when there is a new snapshot, and each shows both cameras' newest frames. Polled every 15 ms,
+#: the off-screen canvas painted 33-36 frames/s, a new one for each camera's frame, which added
+#: the window's CPU and showed nothing more.
 LIVE_POLL_MS = 33
 #: The plots are redrawn at most this often (s). At 10 Hz their painting and feeding took ~45 %
 #: of the window's thread on the 2-core machine (py-spy, while the window was still composed

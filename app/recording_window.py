@@ -29,12 +29,16 @@ from hapticloud.hardware.live.contract import LiveConfig, Snapshot
 from PyQt6 import QtCore, QtGui, QtWidgets
 
 from .live_plots import LivePlots
-from .main_window import PLOT_PERIOD_S, POLL_MS, ViewControls, lay_out_docks
+from .main_window import PLOT_PERIOD_S, ViewControls, lay_out_docks
 from .param_panel import ParamPanel
 from .recording_source import RecordingSource
 from .scene_view import SceneView
 from .status import StatusPanel
 from .timeline import MARK_COLOURS, TimelineWidget, install_shortcuts
+
+#: How often the window polls its player (ms): up to ~60 Hz, so a seek shows within a poll;
+#: a paint happens only when there is a new snapshot.
+POLL_MS = 15
 
 RERUN_MARKER_COLOUR = "#111111"
 #: Marks listed in the dock (the strip shows them all).
