@@ -253,3 +253,50 @@ def test_warm_up_leaves_no_trace(robot: RobotModel) -> None:
         a, b = fresh.tick(t, q, qd), warmed.tick(t, q, qd)
         np.testing.assert_array_equal(a.tau, b.tau)
         assert (a.nearest, a.rows, a.fused_valid) == (b.nearest, b.rows, b.fused_valid)
+
+
+@pytest.mark.parametrize("age_s", [0.0, 0.2])
+def test_a_held_surface_caps_the_speed_along_it(robot: RobotModel, age_s: float) -> None:
+    """A held plane says nothing of what lies beside it: while it is held (its newest estimate
+    0.2 s old) the patient's sideways push moves the HIP at most ``lateral_m_s`` along it;
+    with a fresh surface the same push moves it freely."""
+    from hapticloud.core.fusion import FusedSurface
+    from hapticloud.core.haptics.unknown import SpaceState
+    from hapticloud.core.sim.exo import ExoPlant
+    from hapticloud.core.sim.patient import IntentScript, PatientArm, Waypoint
+
+    plant = ExoPlant(RobotModel.load(), robot.q_home, dt=DT, substeps=2, hand_mass_kg=1.0)
+    hip0 = plant.state().hip
+    up = np.array([0.0, 0.0, 1.0])
+    floor = hip0 - up * (R_HIP + 0.04)
+    loop = _loop(robot, [])
+    cap = loop.config.unknown.lateral_m_s
+    intent = IntentScript(
+        [Waypoint(0.0, hip0), Waypoint(0.2, hip0 + np.array([0.0, 0.1, 0.0]), "linear")]
+    )
+    patient = PatientArm(
+        intent, mass_kg=1.0, stiffness_n_per_m=300.0, damping_n_s_per_m=20.0, posture=robot.q_home
+    )
+
+    def forces(t, hip, vel, q, qd, J, M):
+        return patient.hand_force(t, hip, vel), patient.posture_torque(q, qd, J, M)
+
+    state = plant.state()
+    speeds, spaces = [], set()
+    for k in range(320):  # 0.4 s
+        t = k * DT
+        fused = FusedSurface(
+            t, floor, up, True, np.zeros(3), floor, up, age_s, False, "", 3, 2, ("c",), k
+        )
+        tau_int = plant.model.hip_jacobian().T @ state.hand_force
+        out = loop.tick(t, state.q, state.qd, interaction_torque=tau_int, fused=fused)
+        spaces.add(out.space)
+        state = plant.step(out.tau, forces)
+        v = plant.model.hip_jacobian() @ state.qd
+        speeds.append(float(np.hypot(v[0], v[1])))
+    if age_s:
+        assert spaces == {SpaceState.HOLDING}
+        assert max(speeds) <= cap * 1.1
+    else:
+        assert spaces == {SpaceState.KNOWN}
+        assert max(speeds) > 5 * cap  # the push itself is fast: the cap is what holds it
