@@ -247,11 +247,6 @@ def _quadric_fit(
     the nearest point only, and answer only if the points that fit leaves out make no nearer
     surface at the ``wide`` configuration."""
     fit = _fit_surface(rel, d2, camera_axis, qc, seeded)
-    if seeded and isinstance(fit, _NoSupport):
-        # At a sharp edge the nearest patch spans both faces: its plane is tilted away from the
-        # HIP, whose foot on it lies beyond the patch, where the first refit finds no points.
-        # Started on the patch itself, the fit models the edge's rounded neighbourhood.
-        fit = _fit_surface(rel, d2, camera_axis, qc, seeded, start_on_patch=True)
     if isinstance(fit, str):
         return fit
     if seeded and wide is not None:
@@ -309,10 +304,6 @@ def _residual_m(fit: _Fit, pts: FloatArray, bw: float) -> FloatArray:
 _SEED_PATCH_BANDWIDTHS = 1.0
 
 
-class _NoSupport(str):
-    """Why a fit failed: too few points within its support (a reason, as every other)."""
-
-
 def _fit_surface(
     rel: FloatArray,
     d2: FloatArray,
@@ -320,12 +311,10 @@ def _fit_surface(
     qc: QuadricConfig,
     seeded: bool = False,
     with_leverage: bool = True,
-    start_on_patch: bool = False,
 ) -> _Fit | str:
     """Steps 1-3 on HIP-relative points ``rel`` (m) with squared distances ``d2``; a string
     says what failed. ``seeded``: the initial plane from the nearest point's patch only;
-    ``with_leverage``: the fit may answer (else its leverage is left inf, not computed);
-    ``start_on_patch``: the first refit centred on that patch, not on the HIP's foot."""
+    ``with_leverage``: the fit may answer (else its leverage is left inf, not computed)."""
     bw = qc.bandwidth_m
     # 1. Initial plane through the points near the nearest ones (a few skipped: flying pixels).
     k = min(len(rel) - 1, max(2, len(rel) // 200))
@@ -343,9 +332,7 @@ def _fit_surface(
         return "no plane through the nearest points"
     centroid, normal = start
     normal = _face_camera(normal, camera_axis, -centroid)
-    # The first refit is centred on the foot of the HIP on that plane (``start_on_patch``: on
-    # the nearest points' centroid).
-    origin = centroid if start_on_patch else float(centroid @ normal) * normal
+    origin = float(centroid @ normal) * normal  # foot of the HIP on that plane
 
     # The fits look within _SUPPORT_SIGMAS bandwidths of the estimate, which moves by a few mm:
     # a margin keeps one candidate set for all refits. The refits before the last one only
@@ -609,7 +596,7 @@ def _refit(
     sel = np.flatnonzero(r2 < _SUPPORT_SIGMAS**2)
     w = np.exp(-0.5 * r2[sel]) * robust[sel]
     if int(np.count_nonzero(w > 1e-3)) < qc.min_points:
-        return _NoSupport(f"{int(np.count_nonzero(w > 1e-3))} points near the surface")
+        return f"{int(np.count_nonzero(w > 1e-3))} points near the surface"
     q = local[sel]
     k_max = max(len(QUADRIC_MODELS[m]) for m in models)
     lsq = NestedQuadricLSQ(q, w, min(k_max, 6))

@@ -125,8 +125,7 @@ def test_noise_alone_does_not_narrow_the_fit() -> None:
 # from both; "hole", the hand on the cheek hiding the 28 mm around the closest point (the front
 # camera decimated 8x, `bench safety`); "corner", the app's live demo (right45, recorded by
 # `hapticloud app --record`), the hand 72 mm from the torso's top edge, the chin and the neck
-# about as near; "edge", the app's live demo (right45), the hand 73 mm from the torso's sharp top
-# edge, the nearest points on both of its faces.
+# about as near.
 _SWITCH_FRAMES = Path(__file__).parent / "data" / "demo_body_switch_frames.npz"
 
 
@@ -178,17 +177,6 @@ def test_a_narrower_fit_answers_where_the_wide_fit_kept_a_minority_of_its_points
     assert fit.valid and fit.quality >= 0.5 and fit.inliers >= 0.9
     err = fit.d_proj(hip, 0.0) - truth
     assert -1e-3 < err < 0.5e-3  # on the safe side, within a millimetre
-
-
-def test_at_a_sharp_edge_the_narrower_fit_starts_on_its_patch() -> None:
-    # The nearest patch spans both faces of the edge: its plane is tilted away from the HIP,
-    # whose foot on it lies beyond the patch. Started there, the narrower fit found "0 points
-    # near the surface" and both cameras lost the estimate for up to 100 ms in the app: a hold.
-    points, hip, axis, truth = _switch_frame("edge")
-    fit = estimate_surface(points, hip, axis)
-    assert fit.valid and fit.quality >= 0.5
-    err = fit.d_proj(hip, 0.0) - truth
-    assert -3e-3 < err < 0.5e-3  # on the safe side
 
 
 def test_a_narrower_fit_does_not_bridge_a_hole_wider_than_its_bandwidth() -> None:
