@@ -89,9 +89,6 @@ TANGENT_BAND_M_S2 = 0.02
 # the tangential rows sit exactly on it, up to rounding.
 _SHORTCUT_TOL = 1e-9
 
-# Below this lateral speed (m/s) the held surface's speed cap has no direction and no row.
-_LATERAL_DIRECTION_MIN_M_S = 1e-6
-
 # Internal bits of the shared motion row: both constraints present, and which one is tighter.
 _TIGHTER, _POS_TIGHTER = 8, 16
 
@@ -302,8 +299,7 @@ class HapticLoop:
         a_tau[:, n:] = np.eye(n)
         a_tau.setflags(write=False)
         self._a_tau = a_tau
-        # Row buffer: per surface a motion row and a force row, plus 2 tangents x 2 rows (or,
-        # while a surface is held, the one row of the lateral speed cap instead).
+        # Row buffer: per surface a motion row and a force row, plus 2 tangents x 2 rows.
         capacity = 2 * (1 + len(self.walls)) + 4
         self._G = np.zeros((capacity, 2 * n))
         self._h = np.zeros(capacity)
@@ -434,8 +430,12 @@ class HapticLoop:
         )
         qdd5 = self._level5_acceleration(hip, hold_q, tau_int, factor)
         m = n_haptic
-        if space is SpaceState.HOLDING and primary is not None:
-            m = self._lateral_cap_row(hip, primary.normal, m)
+        unknown = self.config.unknown
+        if space is SpaceState.HOLDING and primary is not None and d_min > unknown.lateral_beyond_m:
+            # A held plane says nothing of what lies beside it: away from it the HIP's speed
+            # along it is capped (the tangential rows, their target limited; _tangential_rows).
+            held = normals if normals else [np.asarray(primary.normal, dtype=np.float64)]
+            m = self._tangential_rows(hip.jacobian, held, qdd5, m, hip.qd, unknown.lateral_m_s)
         elif normals and self.config.frictionless:
             m = self._tangential_rows(hip.jacobian, normals, qdd5, m)
         self._rows_written = m
@@ -782,38 +782,14 @@ class HapticLoop:
             bits |= _TIGHTER | (_POS_TIGHTER if which == POSITIONAL else 0)
         return bound, bits
 
-    def _lateral_cap_row(self, hip: HipState, held_normal: FloatArray, m: int) -> int:
-        """The row capping the HIP's speed along a held surface at ``unknown.lateral_m_s``.
-
-        Why: the held plane bounds the approach toward the body the last estimate saw, and
-        nothing else. Measured (``bench safety``, perception at 7 Hz and 146 ms): holding tick
-        after tick, the patient pushed the HIP sideways at 0.6-0.7 m/s, 84 mm in 144 ms, from
-        the torso's plane into the head's side, which no estimate had yet shown. The distance to
-        the patient changes at most as fast as the HIP moves, so a capped speed bounds what the
-        held knowledge can miss.
-
-        The cap is the velocity constraint's one formula on a virtual surface ahead of the HIP
-        along its lateral velocity ``v_t`` (normal ``-v_t/|v_t|``): the row caps the next
-        tick's speed in that direction, re-aimed every tick. Replaces the frictionless
-        tangential rows while holding (they would hold the sideways push the cap must stop).
-        Returns the new row count.
-        """
-        v = hip.jacobian.dot(hip.qd)
-        v_lateral = v - float(v.dot(held_normal)) * held_normal
-        speed = math.sqrt(float(v_lateral.dot(v_lateral)))
-        if not speed > _LATERAL_DIRECTION_MIN_M_S:
-            return m  # no direction to cap yet; the next tick has one if the push starts
-        n = -v_lateral / speed
-        J_c = n.dot(hip.jacobian)
-        hs = HapticState(0.0, J_c, float(n.dot(hip.jdot_qd)), -speed, 0.0, hip.qd, n, _ZERO3)
-        cap = self.config.unknown.lateral_m_s
-        self._G[m, : self.n_joints] = -J_c
-        self._h[m] = self.velocity.bound(hs, self.dt, cap)
-        self._kind[m] = 0
-        return m + 1
-
     def _tangential_rows(
-        self, J: FloatArray, normals: list[FloatArray], qdd5: FloatArray | None, m: int
+        self,
+        J: FloatArray,
+        normals: list[FloatArray],
+        qdd5: FloatArray | None,
+        m: int,
+        qd: FloatArray | None = None,
+        speed_cap_mps: float | None = None,
     ) -> int:
         """Rows holding the HIP's acceleration across the active normals at level 5's one.
 
@@ -828,7 +804,17 @@ class HapticLoop:
         is anisotropic). Each tangent ``t`` gives
         the pair ``t^T J qdd <= a_t + b`` and ``-t^T J qdd <= b - a_t`` (a band of half-width
         ``b = TANGENT_BAND_M_S2`` the haptic level can hold): rows ``t^T J`` then ``-t^T J``.
-        Returns the new row count.
+
+        ``speed_cap_mps`` (with ``qd``), while a surface is held away from it: the target along
+        each tangent is the push's, but none that takes the HIP's speed along that tangent past
+        the cap within the velocity constraint's horizon ``kv dt``. Why: the held plane bounds
+        the approach toward the body the last estimate saw, and nothing beside it. Measured
+        (``bench safety``, perception at 7 Hz and 146 ms, with better estimates at the torso's
+        edge): holding tick after tick, the patient pushed the HIP sideways at 0.6-0.7 m/s, 84 mm
+        in 144 ms, from the torso's plane into the head, which no estimate had shown yet. The
+        distance to the patient changes at most as fast as the HIP moves. (A cap in contact too,
+        or a row along the lateral velocity instead of the tangential rows, made seed sweeps of
+        other cells UNSAFE; docs/benchmarks.md.) Returns the new row count.
         """
         n = self.n_joints
         if len(normals) == 1:
@@ -848,12 +834,20 @@ class HapticLoop:
         # A band of +-TANGENT_BAND around the free acceleration, not an exact equality: two
         # opposite rows with equal bounds are degenerate for DAQP, which then failed now and then
         # (3 ticks in the wall scene) and fell back to the 1.5 ms cascade.
-        if qdd5 is None:
+        if qdd5 is None and speed_cap_mps is None:
             hv[m : m + 2 * k] = TANGENT_BAND_M_S2
         else:
             # Both bounds from Python floats in one assignment: a sum or difference of two
             # doubles rounds the same in Python as in numpy, and this saves two ufunc calls.
-            a = gs.dot(qdd5).tolist()
+            a = [0.0] * k if qdd5 is None else gs.dot(qdd5).tolist()
+            if speed_cap_mps is not None and qd is not None:
+                # While a surface is held: the push's acceleration along each tangent, but none
+                # that takes the speed along it past the cap within the velocity constraint's
+                # horizon (and back under it when above).
+                gain_time = self.velocity.config.kv * self.dt
+                cap = max(speed_cap_mps, 0.0)
+                for i, v in enumerate(gs.dot(qd).tolist()):
+                    a[i] = min(max(a[i], (-cap - v) / gain_time), (cap - v) / gain_time)
             band = TANGENT_BAND_M_S2
             hv[m : m + 2 * k] = [ai + band for ai in a] + [band - ai for ai in a]
         kind[m : m + 2 * k] = [0] * (2 * k)

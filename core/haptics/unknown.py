@@ -11,10 +11,11 @@ the cameras) the space around the HIP is *unknown*, and unknown is treated as ne
     is grown towards the HIP by a margin that grows with the age of the newest estimate beyond
     ``fresh_s`` and with the surface's speed when last seen fresh (``margin = (age - fresh_s) *
     (growth_m_s + speed_factor * |v|)``): the patient may have moved toward the hand, unseen.
-    The approach speed toward it is capped at ``approach_m_s``, and the HIP's speed along it
-    at ``lateral_m_s``: a held plane says nothing of what lies beside it (another body may be
-    just out of the old estimate's view), so the hand may not cross unseen space fast while
-    the surface is held.
+    The approach speed toward it is capped at ``approach_m_s``, and, farther from it than
+    ``lateral_beyond_m``, the HIP's speed along it at ``lateral_m_s``: a held plane says nothing
+    of what lies beside it (another body may be just out of the old estimate's view), so the
+    hand may not cross unseen space fast while the surface is held. In contact the hand slides
+    on the surface it holds, frictionless as when the surface is known.
 ``STOPPED``
     the newest estimate is ``stop_after_s`` old, or no surface was ever known: the robot comes
     to rest and holds the joint position where it stopped (a joint-space PD task at level 5),
@@ -88,6 +89,14 @@ class UnknownSpaceConfig(StageConfig):
         hi=1.0,
         unit="m/s",
         doc="speed cap along the held surface (what lies beside a held plane is unseen)",
+    )
+    lateral_beyond_m: float = param(
+        0.02,
+        lo=0.0,
+        hi=0.5,
+        unit="m",
+        doc="the speed cap applies this far from the held surface and beyond (in contact the "
+        "hand slides on the surface it holds)",
     )
     growth_m_s: float = param(
         0.1,
