@@ -62,7 +62,7 @@ class FusionConfig(StageConfig):
         doc="age weights: exponential 0.5**(age/h) or inverse 1/(1 + age/h) (paper-like)",
     )
     weight_half_life_s: float = param(
-        0.1, lo=0.005, hi=10.0, unit="s", log_scale=True, doc="age at which a sample weighs half"
+        0.05, lo=0.005, hi=10.0, unit="s", log_scale=True, doc="age at which a sample weighs half"
     )
     max_degree: int = param(
         2, lo=0, hi=2, doc="polynomial degree in time (lowered with few samples)"
@@ -97,11 +97,14 @@ class FusionConfig(StageConfig):
     )
 
     # ----- follower -----------------------------------------------------------------------------
-    # Defaults: critically damped at 50 rad/s (centroid) and 30 rad/s (normal), so a refit's jump
-    # is smoothed over ~2-3 estimate periods; stiffer gains cut the lag of corrections but pass
-    # more of the 30 Hz jitter (measured trade in the fusion report). ki = 0: with feed-forward the
-    # output has no steady-state error left to integrate; the integral serves feedforward = 0
-    # (the paper's pure PID), where it removes the ramp lag kd * v / kp.
+    # Defaults: critically damped at 200 rad/s (centroid) and 100 rad/s (normal), with the
+    # window's half-life 0.05 s: every shipped scene with cameras had set exactly these (sliding
+    # scene: fused centroid 2.15 -> 1.14 mm median, normal 2.28 -> 1.25 deg, the largest normal
+    # change between ticks 0.29 deg), and through a crease crossing they lag half as far as the
+    # paper-like 50 / 30 rad/s (docs/benchmarks.md, "The fusion's defaults"). Softer gains pass
+    # less of the 30 Hz jitter and lag more. ki = 0: with feed-forward the output has no
+    # steady-state error left to integrate; the integral serves feedforward = 0 (the paper's pure
+    # PID), where it removes the ramp lag kd * v / kp.
     feedforward: float = param(
         1.0,
         lo=0.0,
@@ -109,7 +112,7 @@ class FusionConfig(StageConfig):
         doc="fraction of the regression's own motion applied directly (0 = paper's pure PID)",
     )
     kp: float = param(
-        2500.0,
+        40000.0,
         lo=0.0,
         hi=1e6,
         lo_open=True,
@@ -119,7 +122,7 @@ class FusionConfig(StageConfig):
     )
     ki: float = param(0.0, lo=0.0, hi=1e8, unit="1/s³", doc="centroid follower integral gain")
     kd: float = param(
-        100.0,
+        400.0,
         lo=0.0,
         hi=1e4,
         lo_open=True,
@@ -131,7 +134,7 @@ class FusionConfig(StageConfig):
         5.0, lo=0.0, hi=1e3, unit="m/s²", doc="anti-windup: max acceleration from the integral"
     )
     normal_kp: float = param(
-        900.0,
+        10000.0,
         lo=0.0,
         hi=1e6,
         lo_open=True,
@@ -141,7 +144,7 @@ class FusionConfig(StageConfig):
     )
     normal_ki: float = param(0.0, lo=0.0, hi=1e8, unit="1/s³", doc="normal follower integral gain")
     normal_kd: float = param(
-        60.0,
+        200.0,
         lo=0.0,
         hi=1e4,
         lo_open=True,

@@ -15,6 +15,7 @@ from hapticloud.app.param_panel import (
     pretty_name,
     slider_span,
 )
+from hapticloud.core.fusion import FusionConfig
 from hapticloud.hardware.live.contract import LiveConfig
 
 pytestmark = pytest.mark.usefixtures("qapp")
@@ -116,7 +117,7 @@ def test_invalid_value_is_refused_reverted_and_explained(panel: ParamPanel, qtbo
 
 
 def test_unstable_gains_are_refused_with_the_reason(panel: ParamPanel) -> None:
-    assert not panel.set_value("fusion.ki", 1e6)
+    assert not panel.set_value("fusion.ki", 2.0 * panel.config.fusion.kp * panel.config.fusion.kd)
     assert "Routh-Hurwitz" in panel.error_label.text()
     assert panel.config.fusion.ki == 0.0
     assert panel.set_value("fusion.ki", 1000.0)
@@ -142,7 +143,7 @@ def test_presets_round_trip_and_bad_presets_are_refused(panel: ParamPanel, tmp_p
     panel.save_preset(path)
     panel.reset_defaults()
     assert panel.config == LiveConfig()
-    assert panel.editor("fusion.kp").value() == pytest.approx(2500.0)
+    assert panel.editor("fusion.kp").value() == pytest.approx(FusionConfig().kp)
     assert panel.load_preset(path)
     assert panel.config == tuned
     assert panel.editor("perception.abstraction.method").value() == "paper"

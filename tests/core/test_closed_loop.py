@@ -75,8 +75,9 @@ def test_a_repeated_scene_is_checked_where_it_loads(tmp_path) -> None:
     # Its two reaches alone (without the rest) return to their start: they can repeat.
     text = Path(scene.path).read_text()
     rest = text.index("[[patient.waypoints]]\nposition_m = [0.123")
+    after = text.find("\n[", rest + 1)  # the tables after the resting waypoint, if any
     reaches = tmp_path / "reaches.toml"
-    reaches.write_text(text[:rest] + text[text.index("[fusion]") :])
+    reaches.write_text(text[:rest] + ("" if after < 0 else text[after:]))
     twice = load_scene(reaches)
     ClosedLoopSim(twice.with_overrides({"patient.repeat_s": 8.5}))
     with pytest.raises(InputError, match=r"patient\.repeat_s = 5: shorter than"):
