@@ -230,3 +230,21 @@ def test_a_normal_pointing_away_from_the_hip_is_never_an_estimate() -> None:
         config = PerceptionConfig().replace_path("abstraction.method", method)
         est = CameraPipeline(config).process(cloud, hip, axis, t=0.0)
         assert not est.valid and "points away from the HIP" in est.reason, method
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known, open: a fit across the occluded cheek passes its bulge 17 mm on the far side "
+    "(docs/benchmarks.md, 'A rounded torso ...'); remove this mark when it holds",
+)
+def test_a_fit_across_the_occluded_cheek_is_never_far_on_the_unsafe_side() -> None:
+    # The demo with a rounded torso (benchmarks/scenes/demo-rounded-torso.toml, seed 9, right45
+    # at 6.78 s): the hand hides 12 mm around the cheek's closest point, and the fit across the
+    # hole, standing on the face and the head around it, puts the surface 17 mm farther than it
+    # is with a quality over the gate (0.61). A narrower fit from the nearest patch is within
+    # 2 mm, but answering with it bounced the sliding scene (measured, not shipped).
+    data = np.load(Path(__file__).parent / "data" / "demo_cheek_hole_frame.npz")
+    points, hip, axis = data["cheek_points"], data["cheek_hip"], data["cheek_axis"]
+    truth = float(data["cheek_true_distance"])
+    fit = estimate_surface(points, hip, axis)
+    assert not (fit.valid and fit.quality >= 0.5) or fit.d_proj(hip, 0.0) - truth < 2e-3
