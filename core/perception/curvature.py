@@ -221,7 +221,7 @@ def quadric_surface(
     if isinstance(best, str):
         return _fallback(points, hip, camera_axis, cfg, best)
     if levels:
-        return _nearer_across_a_hole(best, hip, points - hip, rel, d2, camera_axis, qc, levels[0])
+        return _nearer_across_a_hole(best, points, hip, rel, d2, camera_axis, qc, levels[0])
     return best
 
 
@@ -232,8 +232,8 @@ _HOLE_BANDWIDTHS = 0.25
 
 def _nearer_across_a_hole(
     best: SurfaceFit,
+    points: FloatArray,
     hip: FloatArray,
-    every: FloatArray,
     rel: FloatArray,
     d2: FloatArray,
     camera_axis: FloatArray,
@@ -259,6 +259,8 @@ def _nearer_across_a_hole(
     gap = float(np.sqrt(np.min(np.einsum("ij,ij->i", off, off))))
     if not gap > _HOLE_BANDWIDTHS * qc.bandwidth_m:
         return best
+    # Only here, past the gate: every point relative to the HIP (the fits use a subsample).
+    every = points - hip
     noise = _patch_noise(every, np.einsum("ij,ij->i", every, every), qc)
     if not best.residual_m > qc.second_surface_sigmas * noise:
         return best
