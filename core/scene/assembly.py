@@ -47,7 +47,7 @@ from ..sim.bodies import Body, BoxBody, CapsuleBody, CylinderBody, EllipsoidBody
 from ..sim.depth_camera import SimDepthCamera
 from ..sim.exo import solve_hip_ik
 from ..sim.patient import IntentScript, PatientArm, Waypoint, segment_time
-from ..sim.scenes import rotation_xyz
+from ..sim.scenes import PLACEMENT_YAW_DEG, placement_eye, rotation_xyz
 from ..sim.world import SimWorld
 from .loader import Scene
 from .schema import BodySpec, CameraSpec
@@ -168,9 +168,8 @@ def camera_pose(spec: CameraSpec, default_target: FloatArray) -> FloatArray:
     if spec.placement == "custom":
         eye = np.array(spec.position_m)
     else:
-        yaw = 0.0 if spec.placement == "front" else math.radians(-45.0)
-        eye = target + spec.distance_m * np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        eye = eye + np.array([0.0, 0.0, spec.height_m])
+        yaw_deg = PLACEMENT_YAW_DEG[spec.placement]
+        eye = placement_eye(target, yaw_deg, spec.distance_m, spec.height_m)
     if np.linalg.norm(target - eye) < 1e-6:
         raise ConfigError(f"cameras[{spec.name}]: position_m equals the target")
     return look_at(eye, target)

@@ -37,9 +37,10 @@ from ..perception import PerceptionConfig
 from ..sim.bodies import BODY_PARTS
 from ..sim.noise import DepthNoiseConfig
 from ..sim.patient import PROFILES
+from ..sim.scenes import PLACEMENT_YAW_DEG
 
 BODY_TYPES = ("sphere", "ellipsoid", "capsule", "cylinder", "box")
-PLACEMENTS = ("front", "right45", "custom")
+PLACEMENTS = (*PLACEMENT_YAW_DEG, "custom")
 CAMERA_MODELS = ("d435", "oracle")
 
 #: Keys each body type needs (besides name, type, part).
@@ -126,7 +127,9 @@ class CameraSpec(StageConfig):
         doc="d435: rendered depth + perception; oracle: true closest point + noise (fast)",
     )
     placement: str = param(
-        "front", choices=PLACEMENTS, doc="front / right45 (the paper's) or custom (position_m)"
+        "front",
+        choices=PLACEMENTS,
+        doc="front / right45 (the paper's), left45 (its mirror) or custom (position_m)",
     )
     target_m: tuple[float, ...] = param(
         (), lo=-5.0, hi=5.0, unit="m", doc="point the camera looks at (empty: the initial HIP)"

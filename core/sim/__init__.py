@@ -19,6 +19,7 @@ from .depth_camera import RayHits, SimDepthCamera, decimated
 from .ellipsoid import closest_point_on_ellipsoid
 from .noise import DepthNoiseConfig, apply_depth_noise, frame_key
 from .scenes import (
+    PLACEMENT_YAW_DEG,
     BenchScene,
     ContactScene,
     HipSamples,
@@ -28,6 +29,7 @@ from .scenes import (
     end_effector,
     paper_cameras,
     perception_bench_scenes,
+    placement_eye,
     rotation_xyz,
 )
 from .world import MISS, OCCLUDER, GroundTruth, SimWorld, intersect_primitive
@@ -37,6 +39,7 @@ __all__ = [
     "MESH_TOLERANCE_M",
     "MISS",
     "OCCLUDER",
+    "PLACEMENT_YAW_DEG",
     "BenchScene",
     "Body",
     "BoxBody",
@@ -63,5 +66,6 @@ __all__ = [
     "intersect_primitive",
     "paper_cameras",
     "perception_bench_scenes",
+    "placement_eye",
     "rotation_xyz",
 ]

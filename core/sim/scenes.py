@@ -45,6 +45,21 @@ def rotation_xyz(rx_deg: float = 0.0, ry_deg: float = 0.0, rz_deg: float = 0.0) 
     return rot(2, rz_deg) @ rot(1, ry_deg) @ rot(0, rx_deg)
 
 
+#: Yaw (deg, about the vertical, from the patient's front) of the named camera placements: the
+#: paper's two (in front, and at 45 deg on the patient's right, the exoskeleton's side) and the
+#: mirror of the second on the left, which sees past a right-arm exoskeleton's hand.
+PLACEMENT_YAW_DEG = {"front": 0.0, "right45": -45.0, "left45": 45.0}
+
+
+def placement_eye(
+    target: FloatArray, yaw_deg: float, distance_m: float, height_m: float
+) -> FloatArray:
+    """The optical centre ``distance_m`` from ``target`` horizontally at ``yaw_deg`` and
+    ``height_m`` above it."""
+    yaw = math.radians(yaw_deg)
+    return target + distance_m * np.array([math.cos(yaw), math.sin(yaw), 0.0]) + height_m * _UP
+
+
 def paper_cameras(
     target: ArrayLike,
     *,
@@ -62,9 +77,8 @@ def paper_cameras(
     target = as_vector3(target, "target")
     k = intrinsics if intrinsics is not None else CameraIntrinsics.d435()
     cams = []
-    for name, yaw_deg in (("front", 0.0), ("right45", -45.0)):
-        yaw = math.radians(yaw_deg)
-        eye = target + distance_m * np.array([math.cos(yaw), math.sin(yaw), 0.0]) + height_m * _UP
+    for name in ("front", "right45"):
+        eye = placement_eye(target, PLACEMENT_YAW_DEG[name], distance_m, height_m)
         cams.append(SimDepthCamera(name, k, look_at(eye, target), noise, decimation=decimation))
     return cams[0], cams[1]
 

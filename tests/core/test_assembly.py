@@ -80,6 +80,30 @@ def test_world_places_the_moving_surface_from_the_start_hip() -> None:
     assert build_world(_scene(), hip0).at(0.0) is None
 
 
+def test_named_placements_stand_around_the_target_and_left45_mirrors_right45() -> None:
+    target = np.array([0.10, 0.12, 1.10])
+    eyes = {}
+    for placement in ("front", "right45", "left45"):
+        scene = load_scene(
+            "demo",
+            {
+                "cameras.front.placement": placement,
+                "cameras.front.distance_m": 0.7,
+                "cameras.front.height_m": 0.6,
+            },
+        )
+        spec = next(c for c in scene.cameras if c.name == "front")
+        pose = camera_pose(spec, target)
+        eyes[placement] = pose[:3, 3] - np.array(spec.target_m)
+        # Looking at the target (the optical axis, camera +z, through it).
+        to_target = np.array(spec.target_m) - pose[:3, 3]
+        np.testing.assert_allclose(pose[:3, 2], to_target / np.linalg.norm(to_target), atol=1e-12)
+    np.testing.assert_allclose(eyes["front"], [0.7, 0.0, 0.6], atol=1e-12)
+    s = 0.7 / np.sqrt(2.0)
+    np.testing.assert_allclose(eyes["right45"], [s, -s, 0.6], atol=1e-12)  # the patient's right
+    np.testing.assert_allclose(eyes["left45"], [s, s, 0.6], atol=1e-12)
+
+
 def test_walls_keep_their_levels() -> None:
     walls = build_walls(_scene(walls=[FLOOR, {**FLOOR, "name": "stop", "level": "fixed"}]))
     assert [(w.name, w.level) for w in walls] == [("floor", "haptic"), ("stop", "fixed")]
