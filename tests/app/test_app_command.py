@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hapticloud.app import cli
+from hapticloud.core.scene import load_scene
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -110,7 +111,7 @@ def _check_report(rep: dict, stdout: str) -> None:
     assert all(t >= 0 for t, _ in session["states"]) and isinstance(session["faults"], list)
     if len(states) > 1:  # the control process reported: its misses are in
         assert session["misses_per_10k"] is not None and session["misses_per_10k"] >= 0
-    assert set(rep["cameras"]) == {"front", "right45"}
+    assert set(rep["cameras"]) == {c.name for c in load_scene("demo").cameras}
     assert all(0 < cam["rate_hz_median"] < 100 for cam in rep["cameras"].values())
     assert 0 < rep["sim"]["real_time_factor_median"] < 10
     assert rep["view"]["fps_median"] > 0 and rep["view"]["frame_to_screen_ms_median"] > 0

@@ -16,6 +16,7 @@ import pytest
 from hapticloud.app import cli
 from hapticloud.app.recording_source import RecordingSource, is_recording
 from hapticloud.app.scene_view import CAMERA_COLOURS
+from hapticloud.core.scene import load_scene
 from hapticloud.hardware.recording.synth import R_HIP_M, gap_m, synthesize
 from PyQt6 import QtCore, QtWidgets
 
@@ -238,11 +239,10 @@ def test_record_button_records_what_the_live_window_shows(qtbot, tmp_path: Path)
     assert controls.button.text().endswith("Record")
     with Recording.open(rec.path) as recording:
         counts = {t: c.messages for t, c in recording.channels.items()}
-        assert recording.info["source"] == "app" and sorted(recording.cameras) == [
-            "front",
-            "right45",
-        ]
-        assert counts["/camera/front/depth"] > 5 and counts["/perception/right45/estimate"] > 5
+        names = sorted(c.name for c in load_scene("demo").cameras)
+        assert recording.info["source"] == "app" and sorted(recording.cameras) == names
+        assert all(counts[f"/camera/{name}/depth"] > 5 for name in names)
+        assert all(counts[f"/perception/{name}/estimate"] > 5 for name in names)
         events = [m.data.message for m in recording.messages(["/events"])]
         assert any("voxel_size_m" in e for e in events)
         frames = list(recording.frames(["front"]))
