@@ -81,23 +81,21 @@ def test_world_places_the_moving_surface_from_the_start_hip() -> None:
 
 
 def test_named_placements_stand_around_the_target_and_left45_mirrors_right45() -> None:
-    target = np.array([0.10, 0.12, 1.10])
+    hip0 = np.array(HIP0)
+    cameras = [
+        {"name": name, "placement": name, "distance_m": 0.7, "height_m": 0.6}
+        for name in ("front", "right45", "left45")
+    ]
+    ball = {"name": "head", "type": "sphere", "center_m": [0.0, 0.1, 1.0], "radius_m": 0.1}
+    scene = _scene(cameras=cameras, bodies=[ball])
     eyes = {}
-    for placement in ("front", "right45", "left45"):
-        scene = load_scene(
-            "demo",
-            {
-                "cameras.front.placement": placement,
-                "cameras.front.distance_m": 0.7,
-                "cameras.front.height_m": 0.6,
-            },
+    for spec in scene.cameras:
+        pose = camera_pose(spec, hip0)  # no target_m: the camera looks at the initial HIP
+        eyes[spec.name] = pose[:3, 3] - hip0
+        # The optical axis (camera +z) goes through the target.
+        np.testing.assert_allclose(
+            pose[:3, 2], -eyes[spec.name] / np.linalg.norm(eyes[spec.name]), atol=1e-12
         )
-        spec = next(c for c in scene.cameras if c.name == "front")
-        pose = camera_pose(spec, target)
-        eyes[placement] = pose[:3, 3] - np.array(spec.target_m)
-        # Looking at the target (the optical axis, camera +z, through it).
-        to_target = np.array(spec.target_m) - pose[:3, 3]
-        np.testing.assert_allclose(pose[:3, 2], to_target / np.linalg.norm(to_target), atol=1e-12)
     np.testing.assert_allclose(eyes["front"], [0.7, 0.0, 0.6], atol=1e-12)
     s = 0.7 / np.sqrt(2.0)
     np.testing.assert_allclose(eyes["right45"], [s, -s, 0.6], atol=1e-12)  # the patient's right

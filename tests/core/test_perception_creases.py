@@ -124,9 +124,9 @@ def test_noise_alone_does_not_narrow_the_fit() -> None:
 # Frames of the demo (`hapticloud run demo`, the estimator's input after stages A-D, with the
 # truth): "medial" and "hidden", the hand between the torso's top edge and the chin, about 70 mm
 # from both; "hole", the hand on the cheek hiding the 28 mm around the closest point (the front
-# camera decimated 8x, `bench safety`); "corner", the app's live demo (right45, recorded by
-# `hapticloud app --record`), the hand 72 mm from the torso's top edge, the chin and the neck
-# about as near.
+# camera decimated 8x, `bench safety`); "corner", the app's live demo (right45, its second camera
+# until the tenth session, recorded by `hapticloud app --record`), the hand 72 mm from the
+# torso's top edge, the chin and the neck about as near.
 _SWITCH_FRAMES = Path(__file__).parent / "data" / "demo_body_switch_frames.npz"
 
 
@@ -236,10 +236,11 @@ def test_a_normal_pointing_away_from_the_hip_is_never_an_estimate() -> None:
 def test_a_fit_across_the_occluded_cheek_moves_to_the_bulge_it_smoothed_over(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    # The demo (seed 9, right45 at 6.78 s): the hand hides 12 mm around the cheek's closest
-    # point, and the fit across the hole, standing on the face and the head around it, puts the
-    # surface 17 mm farther than it is with a quality over the gate (0.61). Its residual is 7x
-    # the noise: a narrower fit from the nearest patch follows the bulge, and the answer moves.
+    # The demo (seed 9, right45, its second camera then, at 6.78 s): the hand hides 12 mm around
+    # the cheek's closest point, and the fit across the hole, standing on the face and the head
+    # around it, puts the surface 17 mm farther than it is with a quality over the gate (0.61).
+    # Its residual is 7x the noise: a narrower fit from the nearest patch follows the bulge, and
+    # the answer moves.
     data = np.load(Path(__file__).parent / "data" / "demo_cheek_hole_frame.npz")
     points, hip, axis = data["cheek_points"], data["cheek_hip"], data["cheek_axis"]
     truth = float(data["cheek_true_distance"])
