@@ -246,14 +246,13 @@ def _nearer_across_a_hole(
     cannot follow (a cheek bulging from the head, seen past the hand) its residual is many times
     the noise, and across the hole it can pass the bulge on the far side: 3-17 mm on the demo's
     right45 camera (its second camera until the tenth session), with a quality over the gate
-    (docs/benchmarks.md). A narrower fit from the
-    patch of nearest points follows the bulge. So: closest point in a hole, the fit's residual
-    more than ``second_surface_sigmas`` x the local noise (:func:`_patch_noise` on every point,
-    at least the floor), and a narrower fit that explains its own points better (residual under
-    ``_NARROWED_RESIDUAL`` x) and puts the surface nearer: the answer moves along its normal to
-    that distance. Never farther. On a smooth body the residual is the noise and nothing moves
-    (a narrower fit extrapolated from a small patch moved a head's surface 9 mm nearer and the
-    hand bounced off it).
+    (docs/benchmarks.md). A narrower fit from the patch of nearest points follows the bulge.
+    So: closest point in a hole, the fit's residual more than ``second_surface_sigmas`` x the
+    local noise (:func:`_patch_noise` on every point, at least the floor), and a narrower fit
+    that explains its own points better (residual under ``_NARROWED_RESIDUAL`` x) and puts the
+    surface nearer: the answer moves along its normal to that distance. Never farther. On a
+    smooth body the residual is the noise and nothing moves (a narrower fit extrapolated from a
+    small patch moved a head's surface 9 mm nearer and the hand bounced off it).
     """
     origin = best.centroid - hip
     off = rel - origin
