@@ -112,14 +112,6 @@ class QuadricConfig(StageConfig):
     second_surface_min_points: int = param(
         16, lo=1, hi=10000, doc="fewer such nearer points: noise (flying pixels), not a surface"
     )
-    second_surface_misfit: float = param(
-        1.3,
-        lo=0.0,
-        hi=20.0,
-        doc="look for a second surface only where the fit's residual scale exceeds this many "
-        "times the noise measured on a 1 cm patch at the HIP (0: always look; a single "
-        "surface's ratio is about 1, measured within about 18 %)",
-    )
     narrow_below_quality: float = param(
         0.5,
         lo=0.0,

@@ -41,7 +41,6 @@ from ..geometry.fits import RANK_TOL
 from ..geometry.quadric import (
     QUADRIC_MODELS,
     NestedQuadricLSQ,
-    fit_local_quadric,
     local_quadric_closest,
     local_quadric_distance,
     paraboloid_height,
@@ -249,7 +248,7 @@ def _nearer_across_a_hole(
     right45 camera (its second camera until the tenth session), with a quality over the gate
     (docs/benchmarks.md). A narrower fit from the patch of nearest points follows the bulge.
     So: closest point in a hole, the fit's residual more than ``second_surface_sigmas`` x the
-    local noise (:func:`_local_noise`, at least the floor), and a narrower fit
+    local noise (:func:`_patch_noise` on every point, at least the floor), and a narrower fit
     that explains its own points better (residual under ``_NARROWED_RESIDUAL`` x) and puts the
     surface nearer: the answer moves along its normal to that distance. Never farther. On a
     smooth body the residual is the noise and nothing moves (a narrower fit extrapolated from a
@@ -264,8 +263,7 @@ def _nearer_across_a_hole(
         return best  # under the noise floor's bound: the noise need not be measured
     # Only here, past the gates: every point relative to the HIP (the fits use a subsample).
     every = points - hip
-    local = _local_noise(every, np.einsum("ij,ij->i", every, every))
-    noise = qc.noise_floor_m if local is None else max(local, qc.noise_floor_m)
+    noise = _patch_noise(every, np.einsum("ij,ij->i", every, every), qc)
     if not best.residual_m > qc.second_surface_sigmas * noise:
         return best
     fit = _fit_surface(rel, d2, camera_axis, _narrowed(qc, level), seeded=True, with_leverage=False)
@@ -543,9 +541,7 @@ def _nearer_surface(
     are then fitted on their own (both refitted with the robust scale held at the noise, then
     the points segmented once more by which surface explains them), and the nearer of the two
     surfaces answers. Nearer points that fit no surface of their own (outliers, flying pixels)
-    leave the first fit as it is. None of this is tried where the first fit's residual scale is
-    under ``second_surface_misfit`` x the noise measured at the HIP (:func:`_local_noise`): a
-    surface that explains its points to within the sensor's noise is one surface.
+    leave the first fit as it is.
     """
     dist1 = float(np.sqrt(fit.origin @ fit.origin))
     # Every point counts here, not only the fits' subsample: near a crease the nearer surface
@@ -567,18 +563,6 @@ def _nearer_surface(
     n_closer = int(np.count_nonzero(closer))
     if n_closer < qc.second_surface_min_points:
         return fit, 1, ""
-    local = _local_noise(every, d2_every)
-    if local is not None and fit.scale < qc.second_surface_misfit * local:
-        # The surface explains its points as well as the sensor's noise allows: the points
-        # nearer than it are that noise's tail. Fitted on their own they make a slab parallel
-        # to the surface, which answered 2-6 mm nearer than the body (the tilted plate, the
-        # far head: 0.7-1.4x); where a crease needed the second surface, the fit's residual
-        # was 1.4-48x the local noise.
-        note = (
-            f"{n_closer} points nearer than the surface are its noise (residual "
-            f"{fit.scale * 1e3:.1f} mm, local noise {local * 1e3:.1f} mm)"
-        )
-        return fit, 1, note
     tight = _tighten(fit, noise, camera_axis, qc)
     if isinstance(tight, _Fit):
         fit = tight
@@ -636,10 +620,7 @@ _NOISE_SEED_POINTS = 24
 def _patch_noise(rel: FloatArray, d2: FloatArray, qc: QuadricConfig) -> float:
     """Noise scale (m) of the surface nearest the HIP: residuals of a plane through the points
     within ``_NOISE_PATCH_M`` of the centroid of the ``_NOISE_SEED_POINTS`` nearest ones. Small
-    enough a patch to hold one surface even at a crease, where a fit's residuals mix two. It
-    sets the second-surface check's margin from the fits' thinned points, where the patch often
-    holds fewer than 6 and the floor stands; :func:`_local_noise` measures the sensor's noise
-    from every point.
+    enough a patch to hold one surface even at a crease, where a fit's residuals mix two.
 
     Centred on those points' centroid, not on the nearest point: the nearest point is the one
     the noise moved farthest toward the HIP, and a ball around it holds only points moved about
@@ -656,56 +637,6 @@ def _patch_noise(rel: FloatArray, d2: FloatArray, qc: QuadricConfig) -> float:
     centred = patch - patch.mean(axis=0)
     normal = np.linalg.svd(centred, full_matrices=False)[2][2]
     return _robust_scale(centred @ normal, qc.noise_floor_m)
-
-
-#: Radius (m) of the patch of all points whose paraboloid residuals measure the sensor's noise;
-_LOCAL_NOISE_PATCH_M = 0.010
-#: the fewest points that measure it (six coefficients fitted);
-_LOCAL_NOISE_MIN_POINTS = 16
-#: the fewest points in the ball that gives the patch its plane;
-_LOCAL_NOISE_PLANE_POINTS = 6
-#: how far the patch reaches to either side of that plane, in patch radii.
-_LOCAL_NOISE_DEPTH = 3.0
-
-
-def _local_noise(every: FloatArray, d2_every: FloatArray) -> float | None:
-    """Noise scale (m) of the surface at the HIP, or None where too few points measure it.
-
-    Every point (not the fits' thinned set) within ``_LOCAL_NOISE_PATCH_M`` of the patch's
-    centre, across the plane of the points in a ball of that radius around the centroid of the
-    ``_NOISE_SEED_POINTS`` nearest: the ball alone holds a slice of the noise (the points the
-    noise moved toward the HIP: 2 mm measured where it was 4), a cylinder across its plane
-    holds all of it. Residuals of a paraboloid (a plane would add a thin limb's curvature to
-    the noise), median-based, scaled up for its six coefficients; a patch this small holds one
-    surface but for a few points of a crease's other side, which the median ignores. At 0.75 m
-    it holds about 40 points, and a median-based scale from 40 points has a standard error of
-    about 18 %. What a fit's residual is compared with, to tell structure it smoothed over from
-    noise: the second-surface check's gate and the fit across a hole."""
-    m = min(len(every), _NOISE_SEED_POINTS)
-    if m < 1:
-        return None
-    seed = every[np.argpartition(d2_every, m - 1)[:m]].mean(axis=0)
-    off = every - seed
-    patch = off[np.einsum("ij,ij->i", off, off) < _LOCAL_NOISE_PATCH_M * _LOCAL_NOISE_PATCH_M]
-    if len(patch) < _LOCAL_NOISE_PLANE_POINTS:
-        return None
-    centre = patch.mean(axis=0)
-    _, sv, vt = np.linalg.svd(patch - centre, full_matrices=False)
-    if not sv[1] > RANK_TOL * sv[0]:
-        return None
-    q = (off - centre) @ vt.T * (1.0 / _LOCAL_NOISE_PATCH_M)
-    q = q[
-        (np.einsum("ij,ij->i", q[:, :2], q[:, :2]) < 1.0) & (np.abs(q[:, 2]) < _LOCAL_NOISE_DEPTH)
-    ]
-    n = len(q)
-    if n < _LOCAL_NOISE_MIN_POINTS:
-        return None
-    coef, _ = fit_local_quadric(q, np.ones(n), "paraboloid")
-    if coef is None:
-        return None
-    res = local_quadric_distance(q, coef) * _LOCAL_NOISE_PATCH_M
-    k = len(QUADRIC_MODELS["paraboloid"])
-    return _robust_scale(res, 0.0) * math.sqrt(n / (n - k))
 
 
 def _initial_plane(pts: FloatArray) -> tuple[FloatArray, FloatArray] | None:

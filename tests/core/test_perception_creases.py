@@ -14,9 +14,6 @@ from hapticloud.core.perception import (
     estimate_surface,
 )
 from hapticloud.core.sim import contact_bench_scenes
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from hypothesis.extra import numpy as hnp
 from synthetic_patches import make_patch
 
 
@@ -72,86 +69,6 @@ def test_a_single_surface_with_flying_pixels_stays_one_surface():
     assert abs(fit.d_proj([0.0, 0.0, 0.06], 0.0) - 0.06) < 1e-3
 
 
-def _noisy_plate(seed: int, sigma_m: float = 0.0017, step_m: float = 0.001) -> np.ndarray:
-    """The plate z = 0 seen as a D435 sees a torso at 0.75 m: a point every 2.6 mm, depth noise
-    of 1.7 mm, the depth in steps of 1 mm (``step_m`` 0: not quantised)."""
-    rng = np.random.default_rng(seed)
-    grid = np.arange(-0.12, 0.12, 0.0026)
-    xy = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2)
-    depth = rng.normal(0.0, sigma_m, len(xy))
-    return np.column_stack((xy, np.round(depth / step_m) * step_m if step_m else depth))
-
-
-def test_the_noise_of_one_surface_is_not_a_second_surface():
-    """Points 2 mm nearer than a plate whose noise is 1.7 mm are its noise's tail: fitted on
-    their own they make a slab parallel to it, which must not answer as a nearer surface."""
-    hip = np.array([0.0, 0.0, 0.10])
-    ungated = AbstractionConfig().replace_path("quadric.second_surface_misfit", 0.0)
-    errors_mm, ungated_errors_mm = [], []
-    for seed in range(40, 60):
-        cloud = _noisy_plate(seed)
-        fit = estimate_surface(cloud, hip, [0.0, 0.0, -1.0])
-        assert fit.valid and fit.surfaces == 1, fit.reason
-        errors_mm.append((fit.d_proj(hip, 0.0) - 0.10) * 1e3)
-        slab = estimate_surface(cloud, hip, [0.0, 0.0, -1.0], ungated)
-        ungated_errors_mm.append((slab.d_proj(hip, 0.0) - 0.10) * 1e3)
-    assert min(errors_mm) > -0.5 and max(errors_mm) < 0.5
-    # Without the gate the same frames have a slab answer 2.4-2.5 mm nearer (seeds 46, 55).
-    assert min(ungated_errors_mm) < -2.0
-
-
-def _relative(points: np.ndarray, hip: list[float]) -> tuple[np.ndarray, np.ndarray]:
-    rel = points - np.asarray(hip)
-    return rel, np.einsum("ij,ij->i", rel, rel)
-
-
-@pytest.mark.parametrize("sigma_m", [0.0005, 0.0017, 0.003, 0.004])
-def test_local_noise_measures_the_noise_not_a_slice_of_it(sigma_m):
-    """The points nearest the HIP are those the noise moved toward it; a ball around them holds
-    only that slice (1.9 mm measured for 4 mm). Across the patch's plane all of it counts."""
-    measured = [
-        curvature._local_noise(*_relative(_noisy_plate(seed, sigma_m, 0.0), [0.0, 0.0, 0.1]))
-        for seed in range(20)
-    ]
-    assert all(m is not None for m in measured)
-    assert abs(np.median(measured) / sigma_m - 1.0) < 0.15
-
-
-def test_local_noise_does_not_count_a_thin_limbs_curvature():
-    """A finger of radius 9 mm with 0.5 mm of noise: a plane through a 7 mm ball measures its
-    curvature too (0.8 mm); the paraboloid measures the noise."""
-    measured = []
-    for seed in range(10):
-        rng = np.random.default_rng(seed)
-        theta, y = rng.uniform(-1.2, 1.2, 3000), rng.uniform(-0.04, 0.04, 3000)
-        finger = np.column_stack((0.009 * np.sin(theta), y, 0.009 * np.cos(theta)))
-        finger[:, 2] += rng.normal(0.0, 0.0005, len(finger))
-        measured.append(curvature._local_noise(*_relative(finger, [0.0, 0.0, 0.06])))
-    assert np.median(measured) < 0.0006
-
-
-@settings(max_examples=80, deadline=None)
-@given(
-    points=hnp.arrays(
-        np.float64,
-        st.tuples(st.integers(0, 40), st.just(3)),
-        elements=st.floats(-0.02, 0.02, allow_nan=False),
-    ),
-    copies=st.integers(1, 3),
-    flattened=st.sampled_from(["none", "coplanar", "collinear", "one point"]),
-)
-def test_local_noise_of_a_degenerate_patch_is_none_or_a_finite_scale(points, copies, flattened):
-    points = np.tile(points, (copies, 1))
-    if flattened in ("coplanar", "collinear"):
-        points[:, 2] = 0.0
-    if flattened == "collinear":
-        points[:, 1] = 0.0
-    if flattened == "one point":
-        points[:] = 0.01
-    noise = curvature._local_noise(*_relative(points, [0.0, 0.0, 0.05]))
-    assert noise is None or (np.isfinite(noise) and noise >= 0.0)
-
-
 @pytest.mark.parametrize("split", ["train", "heldout"])
 def test_crease_paths_switch_the_closest_body(split):
     scenes = contact_bench_scenes(split)
@@ -195,12 +112,12 @@ def test_noise_alone_does_not_narrow_the_fit() -> None:
     residual is not much smaller, so the wide fit answers."""
     rng = np.random.default_rng(3)
     xy = rng.uniform(-0.15, 0.15, size=(8000, 2))
-    cloud = np.column_stack((xy, rng.normal(0.0, 0.006, len(xy))))
+    cloud = np.column_stack((xy, rng.normal(0.0, 0.004, len(xy))))
     hip = np.array([0.0, 0.0, 0.05])
     wide_cfg = AbstractionConfig().replace_path("quadric.narrowings", 0)
     wide = estimate_surface(cloud, hip, [0.0, 0.0, -1.0], wide_cfg)
     fit = estimate_surface(cloud, hip, [0.0, 0.0, -1.0])
-    assert wide.quality < 0.5  # the noise is 12x the floor: a narrower fit is tried
+    assert wide.quality < 0.5  # the noise is 8x the floor: a narrower fit is tried
     assert np.array_equal(fit.centroid, wide.centroid) and fit.quality == wide.quality
 
 
