@@ -17,6 +17,7 @@ from hapticloud.core.haptics.unknown import (
     free_proof_holds,
     hold_acceleration,
 )
+from hapticloud.core.scene import load_scene
 from hapticloud.core.studies.verdict import UNSAFE_EXIT_CODE, judge
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -190,8 +191,6 @@ def _margin(overrides: dict[str, object], duration: float) -> tuple[float, str]:
 
 def _every_camera(**values: object) -> dict[str, object]:
     """``values`` set on each of the demo's cameras, whatever their names."""
-    from hapticloud.core.scene import load_scene
-
     names = [c.name for c in load_scene("demo").cameras]
     return {f"cameras.{name}.{key}": value for name in names for key, value in values.items()}
 
