@@ -221,8 +221,55 @@ def quadric_surface(
     if isinstance(best, str):
         return _fallback(points, hip, camera_axis, cfg, best)
     if levels:
-        return _nearer_across_a_hole(best, points, hip, rel, d2, camera_axis, qc, levels[0])
+        best = _nearer_across_a_hole(best, points, hip, rel, d2, camera_axis, qc, levels[0])
+        return _nearest_patch_if_nearer(best, points, hip, rel, d2, camera_axis, qc, levels[0])
     return best
+
+
+def _nearest_patch_if_nearer(
+    best: SurfaceFit,
+    points: FloatArray,
+    hip: FloatArray,
+    rel: FloatArray,
+    d2: FloatArray,
+    camera_axis: FloatArray,
+    qc: QuadricConfig,
+    level: int,
+) -> SurfaceFit:
+    """Where the points held more than the surface ``best`` models, the narrower fit from the
+    patch of nearest points if it puts the surface clearly nearer.
+
+    Asked only where the second-surface check found points nearer than the fitted surface:
+    either they made a second surface (``best.surfaces == 2``, the nearer taken) or they made
+    none of their own (:data:`_UNEXPLAINED`). Both happen where a fit runs over a step it cannot
+    follow (a strap on the chest, 4-10 mm high): the second surface, fitted with the step's
+    sides, sags below the strap's top, or the strap's top alone fails the second surface's
+    inlier test and the fit that kept the plate stands; the fit started from the nearest points
+    models the top. It answers if it is nearer by more than ``_PATCH_GAIN_SCALES`` x the wide
+    fit's own residual scale: on noise alone the patch is nearer by a fraction of that (a plane
+    with 4 mm of noise: 0.2 mm), and the nearer of two noisy answers would only be biased.
+    ``bench perception``'s thin-step table: the worst strap (10 x 20 mm) +7.5 -> +3.6 mm at
+    worst, bias +1.29 -> +0.23 mm (docs/benchmarks.md).
+    """
+    if best.surfaces < 2 and _UNEXPLAINED not in best.reason:
+        return best
+    patch = _quadric_fit(points, hip, rel, d2, camera_axis, _narrowed(qc, level), True, qc)
+    if isinstance(patch, str) or not patch.valid:
+        return best
+    nearer = best.d_proj(hip, 0.0) - patch.d_proj(hip, 0.0)
+    if not nearer > 0.0:
+        return best
+    # The wide fit's scale before the check held it at the noise (``best.residual_m`` is that
+    # held scale where two surfaces were fitted).
+    wide = _fit_surface(rel, d2, camera_axis, qc, with_leverage=False)
+    if isinstance(wide, str) or not nearer > _PATCH_GAIN_SCALES * wide.scale:
+        return best
+    note = f"nearest patch's surface {nearer:.4f} m nearer"
+    return dataclasses.replace(
+        patch,
+        reason=f"{patch.reason}; {note}" if patch.reason else note,
+        surfaces=max(best.surfaces, patch.surfaces),
+    )
 
 
 #: A closest point farther than this many bandwidths from every point lies in a hole (the end
@@ -484,6 +531,10 @@ _MINORITY = 0.5
 _NARROWED_MIN_INLIERS = 0.9
 #: A second surface must explain this share of its points at the noise scale (not outliers).
 _MIN_SECOND_INLIERS = 0.7
+#: What the second-surface check says when the points nearer than a fit make no surface.
+_UNEXPLAINED = "points nearer than the surface fit no surface of their own"
+#: The nearest patch answers if nearer than the wide fit by this many of its residual scales.
+_PATCH_GAIN_SCALES = 0.5
 #: Refits of each surface at a crease with the robust scale held at the measured noise.
 _TIGHT_REFITS = 2
 
@@ -604,7 +655,7 @@ def _nearer_surface(
     if not isinstance(second, _Fit) or second.inliers < _MIN_SECOND_INLIERS:
         # Nearer points that make no surface of their own (flying pixels, stray noise): the
         # first surface stands, and says so.
-        return fit, 1, f"{n_closer} points nearer than the surface fit no surface of their own"
+        return fit, 1, f"{n_closer} {_UNEXPLAINED}"
     dist2 = float(np.sqrt(second.origin @ second.origin))
     if dist2 < dist1:
         return second, 2, f"nearer of two surfaces (the other {dist1 - dist2:.4f} m farther)"

@@ -31,6 +31,7 @@ from .scenes import (
     perception_bench_scenes,
     placement_eye,
     rotation_xyz,
+    step_bench_scenes,
 )
 from .world import MISS, OCCLUDER, GroundTruth, SimWorld, intersect_primitive
 
@@ -68,4 +69,5 @@ __all__ = [
     "perception_bench_scenes",
     "placement_eye",
     "rotation_xyz",
+    "step_bench_scenes",
 ]

@@ -787,3 +787,58 @@ def contact_bench_scenes(
         ),
     )
     return {s.name: s for s in scenes}
+
+
+#: Scene class of :func:`step_bench_scenes`: reported by the bench, with no target (a known limit).
+STEP_CLASS = "thin_step"
+#: The straps of :func:`step_bench_scenes`: (height m, width m) on the chest plate.
+_STRAPS = ((0.004, 0.020), (0.007, 0.080), (0.010, 0.020), (0.010, 0.040))
+#: The HIP crosses each strap this far above the plate (m).
+_STRAP_CROSSING_M = 0.03
+
+
+def step_bench_scenes(noise: DepthNoiseConfig | None = None) -> dict[str, ContactScene]:
+    """A thin step on the body: a strap (a sleeve's fold, a band, a thin hand lying flat) on
+    the chest plate of ``tilted_torso`` (leaning back 25 deg, 0.75 m from the camera).
+
+    Boxes: the step's edges are sharp, as a strap's are. The HIP crosses each strap
+    ``_STRAP_CROSSING_M`` above the plate, so the true closest surface switches from the plate
+    to the strap's top and back. The quadric smooths over a step inside its bandwidth (the
+    estimator's known limit): these scenes measure how far, and on which side.
+    """
+    tilt = rotation_xyz(0, -25, 0)
+    chest = np.array([0.0, 0.0, 1.0])
+    out_of_plate, across = tilt @ np.array([1.0, 0.0, 0.0]), tilt @ np.array([0.0, 1.0, 0.0])
+    front = chest + 0.03 * out_of_plate
+    scenes = []
+    for height_m, width_m in _STRAPS:
+        plate = BoxBody(
+            name="torso",
+            part="chest",
+            center=chest,
+            half_extents_m=[0.03, 0.18, 0.25],
+            rotation=tilt,
+        )
+        strap = BoxBody(
+            name="strap",
+            part="chest",
+            center=front + 0.5 * height_m * out_of_plate,
+            half_extents_m=[0.5 * height_m, 0.5 * width_m, 0.2],
+            rotation=tilt,
+        )
+        above = front + _STRAP_CROSSING_M * out_of_plate
+        reach = 0.5 * width_m + 0.03
+        name = f"strap_{height_m * 1e3:.0f}mm_high_{width_m * 1e3:.0f}mm_wide"
+        scenes.append(
+            _contact(
+                name,
+                STEP_CLASS,
+                [plate, strap],
+                "strap",
+                chest,
+                -0.4,
+                f"strap {height_m * 1e3:.0f} mm high, {width_m * 1e3:.0f} mm wide on the chest",
+                path=((above - reach * across, above + reach * across),),
+            )
+        )
+    return {s.name: s for s in scenes}
