@@ -188,26 +188,31 @@ def quadric_surface(
     # A uniform subsample of about max_points is all the fits below use (speed).
     rel = points[:: max(1, n // qc.max_points)] - hip
     d2 = np.einsum("ij,ij->i", rel, rel)
-    best: SurfaceFit | str = ""
+    best: _Answer | str = ""
     # An edge or a step inside the bandwidth is smoothed over and the fit loses quality: a
     # narrower bandwidth models only the surface near the closest point. Each narrower level is
     # tried first from the patch around the nearest point alone (a HIP equally near two bodies
     # has both in its shell of nearest points), then from that whole shell.
     levels = [lv for lv in range(1, qc.narrowings + 1) if qc.bandwidth_m / 2**lv >= MIN_BANDWIDTH_M]
     tries = [(0, False)] + [(level, seeded) for level in levels for seeded in (True, False)]
+    answers: dict[tuple[int, bool], _Answer | str] = {}
     for level, seeded in tries:
         narrowed = qc if level == 0 else _narrowed(qc, level)
         wide = qc if level > 0 else None
         result = _quadric_fit(points, hip, rel, d2, camera_axis, narrowed, seeded, wide)
+        answers[level, seeded] = result
         if isinstance(result, str):
             best = best or result
             if level == 0:
                 break  # no wide fit: the fallback answers (a narrower one alone is not checked)
         elif isinstance(best, str):
             best = result
-        elif result.quality > best.quality and (
-            result.residual_m < _NARROWED_RESIDUAL * best.residual_m
-            or (best.inliers < _MINORITY and result.inliers >= _NARROWED_MIN_INLIERS)
+        elif result.estimate.quality > best.estimate.quality and (
+            result.estimate.residual_m < _NARROWED_RESIDUAL * best.estimate.residual_m
+            or (
+                best.estimate.inliers < _MINORITY
+                and result.estimate.inliers >= _NARROWED_MIN_INLIERS
+            )
         ):
             # Structure smoothed over leaves the narrower fit with a much smaller residual;
             # noise (a far body) does not, and fewer points would only make it noisier. A wider
@@ -216,59 +221,67 @@ def quadric_surface(
             # narrower fit that explains nearly all of its own points answers instead (noise
             # leaves a narrower fit's points as scattered as the wider one's).
             best = result
-        if not isinstance(best, str) and best.quality >= qc.narrow_below_quality:
+        if not isinstance(best, str) and best.estimate.quality >= qc.narrow_below_quality:
             break
     if isinstance(best, str):
         return _fallback(points, hip, camera_axis, cfg, best)
-    if levels:
-        best = _nearer_across_a_hole(best, points, hip, rel, d2, camera_axis, qc, levels[0])
-        return _nearest_patch_if_nearer(best, points, hip, rel, d2, camera_axis, qc, levels[0])
-    return best
+    if not levels:
+        return best.estimate
+    estimate = _nearer_across_a_hole(
+        best.estimate, points, hip, rel, d2, camera_axis, qc, levels[0]
+    )
+    if not best.nearer_points:
+        return estimate
+    patch_key = (levels[0], True)
+    if patch_key not in answers:
+        narrowed = _narrowed(qc, levels[0])
+        answers[patch_key] = _quadric_fit(points, hip, rel, d2, camera_axis, narrowed, True, qc)
+    wide_fit = answers[0, False]
+    if not isinstance(wide_fit, _Answer):  # unreachable: the loop ended in the fallback then
+        return estimate
+    return _nearest_patch_if_nearer(estimate, answers[patch_key], wide_fit.own_scale_m, hip)
+
+
+class _Answer(NamedTuple):
+    """One fit's estimate, and what the rules after the narrowing loop need to know of it."""
+
+    estimate: SurfaceFit
+    #: The fit's own residual scale (m), before the second-surface check held it at the noise.
+    own_scale_m: float
+    #: Points lay nearer the HIP than the fitted surface by more than the noise: they made a
+    #: second surface, or none of their own.
+    nearer_points: bool
 
 
 def _nearest_patch_if_nearer(
-    best: SurfaceFit,
-    points: FloatArray,
-    hip: FloatArray,
-    rel: FloatArray,
-    d2: FloatArray,
-    camera_axis: FloatArray,
-    qc: QuadricConfig,
-    level: int,
+    estimate: SurfaceFit, patch: _Answer | str, wide_scale_m: float, hip: FloatArray
 ) -> SurfaceFit:
-    """Where the points held more than the surface ``best`` models, the narrower fit from the
-    patch of nearest points if it puts the surface clearly nearer.
+    """``estimate``, or the narrower fit from the patch of nearest points (``patch``) if that
+    puts the surface clearly nearer. Asked where the second-surface check found points nearer
+    than the fitted surface (:attr:`_Answer.nearer_points`).
 
-    Asked only where the second-surface check found points nearer than the fitted surface:
-    either they made a second surface (``best.surfaces == 2``, the nearer taken) or they made
-    none of their own (:data:`_UNEXPLAINED`). Both happen where a fit runs over a step it cannot
-    follow (a strap on the chest, 4-10 mm high): the second surface, fitted with the step's
-    sides, sags below the strap's top, or the strap's top alone fails the second surface's
-    inlier test and the fit that kept the plate stands; the fit started from the nearest points
-    models the top. It answers if it is nearer by more than ``_PATCH_GAIN_SCALES`` x the wide
-    fit's own residual scale: on noise alone the patch is nearer by a fraction of that (a plane
-    with 4 mm of noise: 0.2 mm), and the nearer of two noisy answers would only be biased.
-    ``bench perception``'s thin-step table: the worst strap (10 x 20 mm) +7.5 -> +3.6 mm at
-    worst, bias +1.29 -> +0.23 mm (docs/benchmarks.md).
+    Where a fit runs over a step it cannot follow (a strap on the chest, 4-10 mm high), the
+    strap's top is taken as a second surface that, fitted with the step's sides, sags below the
+    top, or the top alone fails the second surface's inlier test and the fit that kept the plate
+    stands; the fit started from the nearest points models the top. It answers if nearer by
+    more than ``_PATCH_GAIN_SCALES`` x the wide fit's own residual scale (``wide_scale_m``): on
+    noise alone the patch is nearer by a fraction of that (a plane with 4 mm of noise: 0.2 mm),
+    and the nearer of two noisy answers would only be biased. Never farther. ``bench
+    perception``'s thin-step table: the worst strap (10 x 20 mm) +7.5 -> +3.6 mm at worst, bias
+    +1.29 -> +0.23 mm (docs/benchmarks.md). Its quality can be lower than the wide fit's (down
+    to 0.5 on straps): where under the loop's ``min_quality`` the camera's estimate is dropped
+    for the frame, never replaced by the farther one.
     """
-    if best.surfaces < 2 and _UNEXPLAINED not in best.reason:
-        return best
-    patch = _quadric_fit(points, hip, rel, d2, camera_axis, _narrowed(qc, level), True, qc)
-    if isinstance(patch, str) or not patch.valid:
-        return best
-    nearer = best.d_proj(hip, 0.0) - patch.d_proj(hip, 0.0)
-    if not nearer > 0.0:
-        return best
-    # The wide fit's scale before the check held it at the noise (``best.residual_m`` is that
-    # held scale where two surfaces were fitted).
-    wide = _fit_surface(rel, d2, camera_axis, qc, with_leverage=False)
-    if isinstance(wide, str) or not nearer > _PATCH_GAIN_SCALES * wide.scale:
-        return best
+    if isinstance(patch, str) or not patch.estimate.valid:
+        return estimate
+    nearer = estimate.d_proj(hip, 0.0) - patch.estimate.d_proj(hip, 0.0)
+    if not nearer > _PATCH_GAIN_SCALES * wide_scale_m:
+        return estimate
     note = f"nearest patch's surface {nearer:.4f} m nearer"
     return dataclasses.replace(
-        patch,
-        reason=f"{patch.reason}; {note}" if patch.reason else note,
-        surfaces=max(best.surfaces, patch.surfaces),
+        patch.estimate,
+        reason="; ".join(r for r in (estimate.reason, patch.estimate.reason, note) if r),
+        surfaces=2,
     )
 
 
@@ -347,7 +360,7 @@ def _quadric_fit(
     qc: QuadricConfig,
     seeded: bool = False,
     wide: QuadricConfig | None = None,
-) -> SurfaceFit | str:
+) -> _Answer | str:
     """Steps 1-4 at ``qc.bandwidth_m``: the estimate, or a string saying why there is none.
 
     ``wide``: the configuration this one narrows (``None`` for the wide fit itself); a narrower
@@ -361,9 +374,11 @@ def _quadric_fit(
         nearer = _rest_nearer(fit, rel, d2, camera_axis, qc, wide)
         if nearer:
             return nearer
-    surfaces, note = 1, ""
+    surfaces, note, nearer_points, own_scale = 1, "", False, fit.scale
     if qc.second_surface:
-        fit, surfaces, note = _nearer_surface(fit, points - hip, rel, d2, camera_axis, qc)
+        fit, surfaces, note, nearer_points = _nearer_surface(
+            fit, points - hip, rel, d2, camera_axis, qc
+        )
     origin, normal, cand, robust = fit.origin, fit.normal, fit.cand, fit.robust
 
     # 4. Checks: the closest point must be near the data and, for full quality, surrounded by it.
@@ -385,7 +400,7 @@ def _quadric_fit(
     quality = fit.inliers * surround / (1.0 + 0.01 * noise_ratio * noise_ratio)
     n = len(points)
     height_se = fit.scale * fit.leverage if math.isfinite(fit.leverage) else 0.0
-    return SurfaceFit(
+    estimate = SurfaceFit(
         True,
         hip + origin,
         normal,
@@ -400,6 +415,7 @@ def _quadric_fit(
         height_se,
         fit.inliers,
     )
+    return _Answer(estimate, own_scale, nearer_points)
 
 
 def _residual_m(fit: _Fit, pts: FloatArray, bw: float) -> FloatArray:
@@ -531,8 +547,6 @@ _MINORITY = 0.5
 _NARROWED_MIN_INLIERS = 0.9
 #: A second surface must explain this share of its points at the noise scale (not outliers).
 _MIN_SECOND_INLIERS = 0.7
-#: What the second-surface check says when the points nearer than a fit make no surface.
-_UNEXPLAINED = "points nearer than the surface fit no surface of their own"
 #: The nearest patch answers if nearer than the wide fit by this many of its residual scales.
 _PATCH_GAIN_SCALES = 0.5
 #: Refits of each surface at a crease with the robust scale held at the measured noise.
@@ -582,7 +596,7 @@ def _nearer_surface(
     d2: FloatArray,
     camera_axis: FloatArray,
     qc: QuadricConfig,
-) -> tuple[_Fit, int, str]:
+) -> tuple[_Fit, int, str, bool]:
     """The nearer of two surfaces when points lie nearer the HIP than the fitted surface allows.
 
     No point on the fitted surface is nearer the HIP than its closest point, so points nearer
@@ -593,6 +607,8 @@ def _nearer_surface(
     the points segmented once more by which surface explains them), and the nearer of the two
     surfaces answers. Nearer points that fit no surface of their own (outliers, flying pixels)
     leave the first fit as it is.
+    Returns the fit that answers, 1 or 2 surfaces, the note, and whether points lay nearer than
+    the first fit by more than the noise (then :func:`_nearest_patch_if_nearer` is asked too).
     """
     dist1 = float(np.sqrt(fit.origin @ fit.origin))
     # Every point counts here, not only the fits' subsample: near a crease the nearer surface
@@ -601,19 +617,19 @@ def _nearer_surface(
     # measured (most frames of a single body; the same answer, about 50 us sooner).
     least = max(qc.second_surface_sigmas * qc.noise_floor_m, qc.second_surface_min_m)
     if dist1 <= least:
-        return fit, 1, ""
+        return fit, 1, "", False
     d2_every = np.einsum("ij,ij->i", every, every)
     if int(np.count_nonzero(d2_every < (dist1 - least) ** 2)) < qc.second_surface_min_points:
-        return fit, 1, ""
+        return fit, 1, "", False
     noise = _patch_noise(rel, d2, qc)
     margin = max(qc.second_surface_sigmas * noise, qc.second_surface_min_m)
     limit = dist1 - margin
     if limit <= 0.0:
-        return fit, 1, ""
+        return fit, 1, "", False
     closer = d2_every < limit * limit
     n_closer = int(np.count_nonzero(closer))
     if n_closer < qc.second_surface_min_points:
-        return fit, 1, ""
+        return fit, 1, "", False
     tight = _tighten(fit, noise, camera_axis, qc)
     if isinstance(tight, _Fit):
         fit = tight
@@ -655,11 +671,12 @@ def _nearer_surface(
     if not isinstance(second, _Fit) or second.inliers < _MIN_SECOND_INLIERS:
         # Nearer points that make no surface of their own (flying pixels, stray noise): the
         # first surface stands, and says so.
-        return fit, 1, f"{n_closer} {_UNEXPLAINED}"
+        note = f"{n_closer} points nearer than the surface fit no surface of their own"
+        return fit, 1, note, True
     dist2 = float(np.sqrt(second.origin @ second.origin))
     if dist2 < dist1:
-        return second, 2, f"nearer of two surfaces (the other {dist1 - dist2:.4f} m farther)"
-    return fit, 2, f"nearer of two surfaces (the other {dist2 - dist1:.4f} m farther)"
+        return second, 2, f"nearer of two surfaces (the other {dist1 - dist2:.4f} m farther)", True
+    return fit, 2, f"nearer of two surfaces (the other {dist2 - dist1:.4f} m farther)", True
 
 
 #: Radius (m) of the patch whose plane residuals measure the noise,

@@ -12,6 +12,7 @@ from the body, which hides the closest surface region from a camera looking alon
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -310,6 +311,23 @@ def _bench(
     ]
 
 
+#: Centre of the chest plate of ``tilted_torso`` and of the thin-step scenes (m, world).
+_CHEST = np.array([0.0, 0.0, 1.0])
+#: The plate leans back this far (deg about y).
+_CHEST_TILT_DEG = -25.0
+
+
+def _chest_plate() -> BoxBody:
+    """The chest plate 0.36 x 0.5 m, 6 cm thick, leaning back 25 deg (``tilted_torso``)."""
+    return BoxBody(
+        name="torso",
+        part="chest",
+        center=_CHEST,
+        half_extents_m=[0.03, 0.18, 0.25],
+        rotation=rotation_xyz(0, _CHEST_TILT_DEG, 0),
+    )
+
+
 def perception_bench_scenes(
     noise: DepthNoiseConfig | None = None,
     *,
@@ -369,17 +387,10 @@ def perception_bench_scenes(
         decimation,
         camera_distance_m,
     )
-    chest = np.array([0.0, 0.0, 1.0])
     scenes += _bench(
         "tilted_torso",
-        BoxBody(
-            name="torso",
-            part="chest",
-            center=chest,
-            half_extents_m=[0.03, 0.18, 0.25],
-            rotation=rotation_xyz(0, -25, 0),
-        ),
-        chest,
+        _chest_plate(),
+        _CHEST,
         -0.4,
         "chest plate leaning back 25 deg",
         noise,
@@ -579,6 +590,7 @@ def contact_bench_scenes(
       at 0.75 m), the wall 0.4 m behind;
     - ``far_body``: a body 1.2-1.5 m from the camera (depth noise 3-5 mm there).
     """
+    contact = functools.partial(_contact, noise=noise)
     R = rotation_xyz
     if split == "train":
         chest = BoxBody(
@@ -607,7 +619,7 @@ def contact_bench_scenes(
         return {
             s.name: s
             for s in (
-                _contact(
+                contact(
                     "crease_forearm_on_chest",
                     "crease",
                     [chest, forearm],
@@ -619,7 +631,7 @@ def contact_bench_scenes(
                         [chest, forearm], [0.16, 0.0, 1.16], [0.16, 0.0, 1.07], [0, 1, 0], 0.08
                     ),
                 ),
-                _contact(
+                contact(
                     "crease_chin_on_neck",
                     "crease",
                     [face, neck],
@@ -631,7 +643,7 @@ def contact_bench_scenes(
                         [face, neck], [0.13, 0.0, 1.26], [0.10, 0.0, 1.08], [0, 1, 0], 0.05
                     ),
                 ),
-                _contact(
+                contact(
                     "thin_finger",
                     "thin_limb",
                     [finger],
@@ -640,7 +652,7 @@ def contact_bench_scenes(
                     -0.4,
                     "finger r 1 cm across the view",
                 ),
-                _contact(
+                contact(
                     "far_head",
                     "far_body",
                     [head],
@@ -709,7 +721,7 @@ def contact_bench_scenes(
         name="forearm", part="forearm", a=[0.3, 0.22, 1.0], b=[0.2, -0.04, 0.97], radius_m=0.042
     )
     scenes = (
-        _contact(
+        contact(
             "crease_inside_elbow",
             "crease",
             [upper, lower],
@@ -725,7 +737,7 @@ def contact_bench_scenes(
                 0.04,
             ),
         ),
-        _contact(
+        contact(
             "crease_hand_on_thigh",
             "crease",
             [thigh, hand],
@@ -736,7 +748,7 @@ def contact_bench_scenes(
             path=_crossing([thigh, hand], [0.2, 0.03, 0.76], [0.36, -0.02, 0.74], [0, 1, 0], 0.05),
             with_occluder=False,
         ),
-        _contact(
+        contact(
             "crease_chin_on_neck_tilted",
             "crease",
             [chin, neck],
@@ -746,7 +758,7 @@ def contact_bench_scenes(
             "chin 2 mm above a tilted neck",
             path=_crossing([chin, neck], [0.14, 0.02, 1.27], [0.1, -0.02, 1.1], [0, 1, 0], 0.05),
         ),
-        _contact(
+        contact(
             "thin_pinky_tilted",
             "thin_limb",
             [pinky],
@@ -755,7 +767,7 @@ def contact_bench_scenes(
             -0.4,
             "pinky capsule r 9 mm, tilted 30 deg",
         ),
-        _contact(
+        contact(
             "thin_thumb_far",
             "thin_limb",
             [thumb],
@@ -765,7 +777,7 @@ def contact_bench_scenes(
             "thumb cylinder r 11 mm at 0.9 m",
             distance_m=0.9,
         ),
-        _contact(
+        contact(
             "far_ellipsoid_head",
             "far_body",
             [far_ellipsoid],
@@ -775,7 +787,7 @@ def contact_bench_scenes(
             "ellipsoid head 1.45 m away",
             distance_m=1.45,
         ),
-        _contact(
+        contact(
             "far_forearm",
             "far_body",
             [far_arm],
@@ -806,19 +818,13 @@ def step_bench_scenes(noise: DepthNoiseConfig | None = None) -> dict[str, Contac
     to the strap's top and back. The quadric smooths over a step inside its bandwidth (the
     estimator's known limit): these scenes measure how far, and on which side.
     """
-    tilt = rotation_xyz(0, -25, 0)
-    chest = np.array([0.0, 0.0, 1.0])
+    contact = functools.partial(_contact, noise=noise)
+    plate = _chest_plate()
+    tilt = plate.rotation
     out_of_plate, across = tilt @ np.array([1.0, 0.0, 0.0]), tilt @ np.array([0.0, 1.0, 0.0])
-    front = chest + 0.03 * out_of_plate
+    front = _CHEST + plate.half_extents_m[0] * out_of_plate
     scenes = []
     for height_m, width_m in _STRAPS:
-        plate = BoxBody(
-            name="torso",
-            part="chest",
-            center=chest,
-            half_extents_m=[0.03, 0.18, 0.25],
-            rotation=tilt,
-        )
         strap = BoxBody(
             name="strap",
             part="chest",
@@ -830,12 +836,12 @@ def step_bench_scenes(noise: DepthNoiseConfig | None = None) -> dict[str, Contac
         reach = 0.5 * width_m + 0.03
         name = f"strap_{height_m * 1e3:.0f}mm_high_{width_m * 1e3:.0f}mm_wide"
         scenes.append(
-            _contact(
+            contact(
                 name,
                 STEP_CLASS,
                 [plate, strap],
                 "strap",
-                chest,
+                _CHEST,
                 -0.4,
                 f"strap {height_m * 1e3:.0f} mm high, {width_m * 1e3:.0f} mm wide on the chest",
                 path=((above - reach * across, above + reach * across),),
