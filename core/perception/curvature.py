@@ -188,6 +188,10 @@ def quadric_surface(
     # A uniform subsample of about max_points is all the fits below use (speed).
     rel = points[:: max(1, n // qc.max_points)] - hip
     d2 = np.einsum("ij,ij->i", rel, rel)
+    # Every point relative to the HIP, once: the second-surface check of each fit and the fit
+    # across a hole count every point, not the subsample.
+    every = points - hip
+    d2_every = np.einsum("ij,ij->i", every, every)
     best: _Answer | str = ""
     # An edge or a step inside the bandwidth is smoothed over and the fit loses quality: a
     # narrower bandwidth models only the surface near the closest point. Each narrower level is
@@ -199,7 +203,7 @@ def quadric_surface(
     for level, seeded in tries:
         narrowed = qc if level == 0 else _narrowed(qc, level)
         wide = qc if level > 0 else None
-        result = _quadric_fit(points, hip, rel, d2, camera_axis, narrowed, seeded, wide)
+        result = _quadric_fit(every, d2_every, hip, rel, d2, camera_axis, narrowed, seeded, wide)
         answers[level, seeded] = result
         if isinstance(result, str):
             best = best or result
@@ -228,14 +232,16 @@ def quadric_surface(
     if not levels:
         return best.estimate
     estimate = _nearer_across_a_hole(
-        best.estimate, points, hip, rel, d2, camera_axis, qc, levels[0]
+        best.estimate, every, d2_every, hip, rel, d2, camera_axis, qc, levels[0]
     )
     if not best.nearer_points:
         return estimate
     patch_key = (levels[0], True)
     if patch_key not in answers:
         narrowed = _narrowed(qc, levels[0])
-        answers[patch_key] = _quadric_fit(points, hip, rel, d2, camera_axis, narrowed, True, qc)
+        answers[patch_key] = _quadric_fit(
+            every, d2_every, hip, rel, d2, camera_axis, narrowed, True, qc
+        )
     wide_fit = answers[0, False]
     if not isinstance(wide_fit, _Answer):  # unreachable: the loop ended in the fallback then
         return estimate
@@ -292,7 +298,8 @@ _HOLE_BANDWIDTHS = 0.25
 
 def _nearer_across_a_hole(
     best: SurfaceFit,
-    points: FloatArray,
+    every: FloatArray,
+    d2_every: FloatArray,
     hip: FloatArray,
     rel: FloatArray,
     d2: FloatArray,
@@ -321,9 +328,8 @@ def _nearer_across_a_hole(
         return best
     if not best.residual_m > qc.second_surface_sigmas * qc.noise_floor_m:
         return best  # under the noise floor's bound: the noise need not be measured
-    # Only here, past the gates: every point relative to the HIP (the fits use a subsample).
-    every = points - hip
-    noise = _patch_noise(every, np.einsum("ij,ij->i", every, every), qc)
+    # Only here, past the gates: the noise on every point (the fits use a subsample).
+    noise = _patch_noise(every, d2_every, qc)
     if not best.residual_m > qc.second_surface_sigmas * noise:
         return best
     fit = _fit_surface(rel, d2, camera_axis, _narrowed(qc, level), seeded=True, with_leverage=False)
@@ -352,7 +358,8 @@ def _narrowed(qc: QuadricConfig, level: int) -> QuadricConfig:
 
 
 def _quadric_fit(
-    points: FloatArray,
+    every: FloatArray,
+    d2_every: FloatArray,
     hip: FloatArray,
     rel: FloatArray,
     d2: FloatArray,
@@ -363,6 +370,8 @@ def _quadric_fit(
 ) -> _Answer | str:
     """Steps 1-4 at ``qc.bandwidth_m``: the estimate, or a string saying why there is none.
 
+    ``every``, ``d2_every``: every point relative to the HIP and its squared distance (the
+    second-surface check counts them all); ``rel``, ``d2``: the subsample the fits use.
     ``wide``: the configuration this one narrows (``None`` for the wide fit itself); a narrower
     fit does not extrapolate farther than its bandwidth. ``seeded``: start from the patch around
     the nearest point only, and answer only if the points that fit leaves out make no nearer
@@ -377,7 +386,7 @@ def _quadric_fit(
     surfaces, note, nearer_points, own_scale = 1, "", False, fit.scale
     if qc.second_surface:
         fit, surfaces, note, nearer_points = _nearer_surface(
-            fit, points - hip, rel, d2, camera_axis, qc
+            fit, every, d2_every, rel, d2, camera_axis, qc
         )
     origin, normal, cand, robust = fit.origin, fit.normal, fit.cand, fit.robust
 
@@ -398,7 +407,7 @@ def _quadric_fit(
     surround = _surround(off[inlier][:: max(1, len(off) // qc.coarse_points)], normal, bw)
     noise_ratio = fit.scale / qc.noise_floor_m
     quality = fit.inliers * surround / (1.0 + 0.01 * noise_ratio * noise_ratio)
-    n = len(points)
+    n = len(every)
     height_se = fit.scale * fit.leverage if math.isfinite(fit.leverage) else 0.0
     estimate = SurfaceFit(
         True,
@@ -592,6 +601,7 @@ def _tighten(fit: _Fit, noise: float, camera_axis: FloatArray, qc: QuadricConfig
 def _nearer_surface(
     fit: _Fit,
     every: FloatArray,
+    d2_every: FloatArray,
     rel: FloatArray,
     d2: FloatArray,
     camera_axis: FloatArray,
@@ -618,7 +628,6 @@ def _nearer_surface(
     least = max(qc.second_surface_sigmas * qc.noise_floor_m, qc.second_surface_min_m)
     if dist1 <= least:
         return fit, 1, "", False
-    d2_every = np.einsum("ij,ij->i", every, every)
     if int(np.count_nonzero(d2_every < (dist1 - least) ** 2)) < qc.second_surface_min_points:
         return fit, 1, "", False
     noise = _patch_noise(rel, d2, qc)
