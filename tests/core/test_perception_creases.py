@@ -117,17 +117,32 @@ def test_a_class_without_scenes_fails_its_targets():
     assert not any(study.check_contact_targets(steps).values())
 
 
+def _strap_bench_row(name: str) -> dict:
+    """One strap of the thin-step table, its 60 frames rendered as the bench renders them."""
+    return study.contact_study(60, None, "strap", {name: step_bench_scenes()[name]})["scenes"][name]
+
+
 def test_a_strap_on_the_chest_is_not_smoothed_into_it() -> None:
     # The bench's worst strap (10 mm high, 20 mm wide), its 60 frames rendered as the bench
     # does: the wide fit runs between the levels, and the strap's top then makes a second
     # surface that sags with its sides, or fails the inlier test and the fit that kept the
     # plate stands. Without the nearest patch's answer: +7.5 mm at worst, bias +1.29 mm (with
     # it +3.6 and +0.23).
-    name = "strap_10mm_high_20mm_wide"
-    steps = study.contact_study(60, None, "strap", {name: step_bench_scenes()[name]})
-    row = steps["scenes"][name]
+    row = _strap_bench_row("strap_10mm_high_20mm_wide")
     assert row["dproj_max_mm"] < 5.0
     assert row["dproj_bias_mm"] < 0.6
+
+
+def test_a_strap_at_the_sensors_resolution_is_not_dropped_as_noise() -> None:
+    # A strap 2 mm high and 10 mm wide against 1.7 mm of depth noise: its nearer points lie
+    # among the plate's noise tail, and a nearer surface cannot be told from that tail. The
+    # thirteenth session's gate that took scattered nearer points for noise (built, not
+    # shipped) fixed two pessimistic plate frames and made this strap's 60 bench frames
+    # optimistic: p90 +0.79 -> +1.33 mm, frames over +0.5 mm 13.3 -> 20.0 % (the gate's commit
+    # kept out of the history; its figures in docs/benchmarks.md).
+    row = _strap_bench_row("strap_2mm_high_10mm_wide")
+    assert row["dproj_unsafe_p90_mm"] < 1.0
+    assert row["optimistic_share"] < 0.17
 
 
 def test_train_and_heldout_scenes_differ():
