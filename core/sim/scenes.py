@@ -801,6 +801,39 @@ def contact_bench_scenes(
     return {s.name: s for s in scenes}
 
 
+def finger_on_chest_scene(
+    gap_m: float = 0.0, distance_m: float = 0.75, noise: DepthNoiseConfig | None = None
+) -> ContactScene:
+    """A thin limb lying on the body: a finger (cylinder r 12 mm) ``gap_m`` above a flat chest,
+    the cameras ``distance_m`` away. A crease of two bodies where one is finger-thin: the HIP
+    comes down over the finger, so the closest surface switches from the chest to the finger,
+    then follows the finger where it is 4 mm nearer than the chest. Not in the bench's splits
+    (their figures, and the trade study's, stay comparable); the tests use it.
+    """
+    if not (gap_m >= 0.0 and distance_m > 0.0):
+        raise InputError(f"finger_on_chest_scene: gap_m = {gap_m}, distance_m = {distance_m}")
+    chest = BoxBody(
+        name="torso", part="chest", center=[0.0, 0.0, 1.0], half_extents_m=[0.1, 0.18, 0.25]
+    )
+    radius = 0.012
+    axis_x = 0.1 + gap_m + radius
+    finger = CylinderBody(
+        name="finger", part="hand", a=[axis_x, -0.12, 1.0], b=[axis_x, 0.12, 1.0], radius_m=radius
+    )
+    return _contact(
+        f"finger_on_chest_{gap_m * 1e3:.0f}mm_at_{distance_m:.2f}m",
+        "crease",
+        [chest, finger],
+        "finger",
+        [0.11, 0.0, 1.0],
+        -0.3,
+        f"finger r 12 mm {gap_m * 1e3:.0f} mm above a flat chest, {distance_m:.2f} m away",
+        path=_crossing([chest, finger], [0.16, 0.0, 1.06], [0.16, 0.0, 1.005], [0, 1, 0], 0.06),
+        distance_m=distance_m,
+        noise=noise,
+    )
+
+
 #: Scene class of :func:`step_bench_scenes`: reported by the bench, with no target (a known limit).
 STEP_CLASS = "thin_step"
 #: The straps of :func:`step_bench_scenes`: (height m, width m) on the chest plate. The last two
