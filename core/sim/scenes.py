@@ -328,6 +328,21 @@ def _chest_plate() -> BoxBody:
     )
 
 
+#: Half the depth of the upright chest of the contact scenes (m): its front face at x = 0.1.
+_FLAT_CHEST_HALF_DEPTH_M = 0.1
+
+
+def _flat_chest() -> BoxBody:
+    """An upright chest 0.36 x 0.5 m, its front face 0.1 m in front of ``_CHEST``: the body a
+    forearm (the train split's crease) or a finger (:func:`finger_on_chest_scene`) lies on."""
+    return BoxBody(
+        name="torso",
+        part="chest",
+        center=_CHEST,
+        half_extents_m=[_FLAT_CHEST_HALF_DEPTH_M, 0.18, 0.25],
+    )
+
+
 def perception_bench_scenes(
     noise: DepthNoiseConfig | None = None,
     *,
@@ -593,9 +608,7 @@ def contact_bench_scenes(
     contact = functools.partial(_contact, noise=noise)
     R = rotation_xyz
     if split == "train":
-        chest = BoxBody(
-            name="torso", part="chest", center=[0.0, 0.0, 1.0], half_extents_m=[0.1, 0.18, 0.25]
-        )
+        chest = _flat_chest()
         arm_z = 1.0
         forearm = CylinderBody(
             name="forearm",
@@ -812,11 +825,9 @@ def finger_on_chest_scene(
     """
     if not (gap_m >= 0.0 and distance_m > 0.0):
         raise InputError(f"finger_on_chest_scene: gap_m = {gap_m}, distance_m = {distance_m}")
-    chest = BoxBody(
-        name="torso", part="chest", center=[0.0, 0.0, 1.0], half_extents_m=[0.1, 0.18, 0.25]
-    )
+    chest = _flat_chest()
     radius = 0.012
-    axis_x = 0.1 + gap_m + radius
+    axis_x = _CHEST[0] + _FLAT_CHEST_HALF_DEPTH_M + gap_m + radius
     finger = CylinderBody(
         name="finger", part="hand", a=[axis_x, -0.12, 1.0], b=[axis_x, 0.12, 1.0], radius_m=radius
     )

@@ -14,7 +14,12 @@ from hapticloud.core.perception import (
     curvature,
     estimate_surface,
 )
-from hapticloud.core.sim import contact_bench_scenes, finger_on_chest_scene, step_bench_scenes
+from hapticloud.core.sim import (
+    ContactScene,
+    contact_bench_scenes,
+    finger_on_chest_scene,
+    step_bench_scenes,
+)
 from hapticloud.core.studies import perception as study
 from synthetic_patches import make_patch
 
@@ -118,9 +123,10 @@ def test_a_class_without_scenes_fails_its_targets():
     assert not any(study.check_contact_targets(steps).values())
 
 
-def _strap_bench_row(name: str) -> dict:
-    """One strap of the thin-step table, its 60 frames rendered as the bench renders them."""
-    return study.contact_study(60, None, "strap", {name: step_bench_scenes()[name]})["scenes"][name]
+def _bench_row(scene: ContactScene) -> dict:
+    """One scene's row of :func:`study.contact_study`, its 60 frames rendered as the bench
+    renders them."""
+    return study.contact_study(60, None, "one", {scene.name: scene})["scenes"][scene.name]
 
 
 def test_a_strap_on_the_chest_is_not_smoothed_into_it() -> None:
@@ -129,7 +135,7 @@ def test_a_strap_on_the_chest_is_not_smoothed_into_it() -> None:
     # surface that sags with its sides, or fails the inlier test and the fit that kept the
     # plate stands. Without the nearest patch's answer: +7.5 mm at worst, bias +1.29 mm (with
     # it +3.6 and +0.23).
-    row = _strap_bench_row("strap_10mm_high_20mm_wide")
+    row = _bench_row(step_bench_scenes()["strap_10mm_high_20mm_wide"])
     assert row["dproj_max_mm"] < 5.0
     assert row["dproj_bias_mm"] < 0.6
 
@@ -141,7 +147,7 @@ def test_a_strap_at_the_sensors_resolution_is_not_dropped_as_noise() -> None:
     # shipped) fixed two pessimistic plate frames and made this strap's 60 bench frames
     # optimistic: p90 +0.79 -> +1.33 mm, frames over +0.5 mm 13.3 -> 20.0 % (the gate's commit
     # kept out of the history; its figures in docs/benchmarks.md).
-    row = _strap_bench_row("strap_2mm_high_10mm_wide")
+    row = _bench_row(step_bench_scenes()["strap_2mm_high_10mm_wide"])
     assert row["dproj_unsafe_p90_mm"] < 1.0
     assert row["optimistic_share"] < 0.17
 
@@ -152,8 +158,7 @@ def test_a_finger_lying_on_the_chest_is_not_reported_farther(gap_m: float) -> No
     # the 0.5 mm floor explains 31-41 % of the chest's points (1.7 mm of noise), and the finger
     # explains 42-63 % of its own. Held to a fixed 70 % the finger was outliers and the chest
     # answered, 3.4-4.5 mm too far: bias +0.93 / +1.39 mm over the 60 frames (gap 0 / 2 mm).
-    scene = finger_on_chest_scene(gap_m)
-    row = study.contact_study(60, None, "finger", {scene.name: scene})["scenes"][scene.name]
+    row = _bench_row(finger_on_chest_scene(gap_m))
     assert row["dproj_bias_mm"] < 0.5
     assert row["valid_near"] >= 0.95
 
