@@ -36,6 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from ..geometry.fits import RANK_TOL
 from ..geometry.quadric import (
@@ -230,7 +231,7 @@ def quadric_surface(
     if isinstance(best, str):
         return _fallback(points, hip, camera_axis, cfg, best)
     if not levels:
-        return best.estimate
+        return _held_no_farther(best.estimate, best.unmodelled_m, hip)
     estimate = _nearer_across_a_hole(
         best.estimate, every, d2_every, hip, rel, d2, camera_axis, qc, levels[0]
     )
@@ -245,7 +246,8 @@ def quadric_surface(
     wide_fit = answers[0, False]
     if not isinstance(wide_fit, _Answer):  # unreachable: the loop ended in the fallback then
         return estimate
-    return _nearest_patch_if_nearer(estimate, answers[patch_key], wide_fit.own_scale_m, hip)
+    estimate = _nearest_patch_if_nearer(estimate, answers[patch_key], wide_fit.own_scale_m, hip)
+    return _held_no_farther(estimate, best.unmodelled_m, hip)
 
 
 class _Answer(NamedTuple):
@@ -257,6 +259,9 @@ class _Answer(NamedTuple):
     #: Points lay nearer the HIP than the fitted surface by more than the noise: they made a
     #: second surface, or none of their own.
     nearer_points: bool
+    #: Distance (m) from the HIP within which such points that made no surface lie together
+    #: (:func:`_unmodelled_nearer_m`); ``inf``: none.
+    unmodelled_m: float
 
 
 def _nearest_patch_if_nearer(
@@ -343,10 +348,16 @@ def _nearer_across_a_hole(
         f"residual {best.residual_m * 1e3:.1f} mm is {best.residual_m / noise:.0f}x the noise, "
         f"a narrower fit's surface is nearer"
     )
+    return _moved_nearer(best, nearer, note)
+
+
+def _moved_nearer(estimate: SurfaceFit, by_m: float, note: str) -> SurfaceFit:
+    """``estimate`` moved ``by_m`` (m, > 0) toward the HIP along its normal, ``note`` added to
+    its reason."""
     return dataclasses.replace(
-        best,
-        centroid=best.centroid + nearer * best.normal,
-        reason=f"{best.reason}; {note}" if best.reason else note,
+        estimate,
+        centroid=estimate.centroid + by_m * estimate.normal,
+        reason=f"{estimate.reason}; {note}" if estimate.reason else note,
     )
 
 
@@ -383,9 +394,9 @@ def _quadric_fit(
         nearer = _rest_nearer(fit, rel, d2, camera_axis, qc, wide)
         if nearer:
             return nearer
-    surfaces, note, nearer_points, own_scale = 1, "", False, fit.scale
+    surfaces, note, nearer_points, own_scale, unmodelled = 1, "", False, fit.scale, math.inf
     if qc.second_surface:
-        fit, surfaces, note, nearer_points = _nearer_surface(
+        fit, surfaces, note, nearer_points, unmodelled = _nearer_surface(
             fit, every, d2_every, rel, d2, camera_axis, qc
         )
     origin, normal, cand, robust = fit.origin, fit.normal, fit.cand, fit.robust
@@ -424,7 +435,7 @@ def _quadric_fit(
         height_se,
         fit.inliers,
     )
-    return _Answer(estimate, own_scale, nearer_points)
+    return _Answer(estimate, own_scale, nearer_points, unmodelled)
 
 
 def _residual_m(fit: _Fit, pts: FloatArray, bw: float) -> FloatArray:
@@ -608,7 +619,7 @@ def _nearer_surface(
     d2: FloatArray,
     camera_axis: FloatArray,
     qc: QuadricConfig,
-) -> tuple[_Fit, int, str, bool]:
+) -> tuple[_Fit, int, str, bool, float]:
     """The nearer of two surfaces when points lie nearer the HIP than the fitted surface allows.
 
     No point on the fitted surface is nearer the HIP than its closest point, so points nearer
@@ -617,10 +628,12 @@ def _nearer_surface(
     resting on another, the two sides of a crease. The points the first surface does not explain
     are then fitted on their own (both refitted with the robust scale held at the noise, then
     the points segmented once more by which surface explains them), and the nearer of the two
-    surfaces answers. Nearer points that fit no surface of their own (outliers, flying pixels)
-    leave the first fit as it is.
-    Returns the fit that answers, 1 or 2 surfaces, the note, and whether points lay nearer than
-    the first fit by more than the noise (then :func:`_nearest_patch_if_nearer` is asked too).
+    surfaces answers. Nearer points that fit no surface of their own leave the first fit as it
+    is, and where they lie together they bound how far the answer may be
+    (:func:`_unmodelled_nearer_m`); scattered ones (outliers, flying pixels) do not.
+    Returns the fit that answers, 1 or 2 surfaces, the note, whether points lay nearer than
+    the first fit by more than the noise (then :func:`_nearest_patch_if_nearer` is asked too),
+    and :func:`_unmodelled_nearer_m` of such points that make no surface (``inf`` otherwise).
     """
     dist1 = float(np.sqrt(fit.origin @ fit.origin))
     # Every point counts here, not only the fits' subsample: near a crease the nearer surface
@@ -629,18 +642,18 @@ def _nearer_surface(
     # measured (most frames of a single body; the same answer, about 50 us sooner).
     least = max(qc.second_surface_sigmas * qc.noise_floor_m, qc.second_surface_min_m)
     if dist1 <= least:
-        return fit, 1, "", False
+        return fit, 1, "", False, math.inf
     if int(np.count_nonzero(d2_every < (dist1 - least) ** 2)) < qc.second_surface_min_points:
-        return fit, 1, "", False
+        return fit, 1, "", False, math.inf
     noise = _patch_noise(rel, d2, qc)
     margin = max(qc.second_surface_sigmas * noise, qc.second_surface_min_m)
     limit = dist1 - margin
     if limit <= 0.0:
-        return fit, 1, "", False
+        return fit, 1, "", False, math.inf
     closer = d2_every < limit * limit
     n_closer = int(np.count_nonzero(closer))
     if n_closer < qc.second_surface_min_points:
-        return fit, 1, "", False
+        return fit, 1, "", False, math.inf
     tight = _tighten(fit, noise, camera_axis, qc)
     if isinstance(tight, _Fit):
         fit = tight
@@ -686,14 +699,52 @@ def _nearer_surface(
     # the chest answered, 3.4-4.5 mm too far. Taking the second surface moves this fit's answer
     # nearer, never farther (the farther of the two never answers): the lower bar errs safe.
     if not isinstance(second, _Fit) or second.inliers < min(_MIN_SECOND_INLIERS, fit.inliers):
-        # Nearer points that make no surface of their own (flying pixels, stray noise): the
-        # first surface stands, and says so.
+        # Nearer points that make no surface of their own: the first surface stands, and the
+        # answer is held no farther than those of them that lie together (not stray pixels).
         note = f"{n_closer} points nearer than the surface fit no surface of their own"
-        return fit, 1, note, True
+        return fit, 1, note, True, _unmodelled_nearer_m(every[closer], d2_every[closer], qc)
     dist2 = float(np.sqrt(second.origin @ second.origin))
-    if dist2 < dist1:
-        return second, 2, f"nearer of two surfaces (the other {dist1 - dist2:.4f} m farther)", True
-    return fit, 2, f"nearer of two surfaces (the other {dist2 - dist1:.4f} m farther)", True
+    note = f"nearer of two surfaces (the other {abs(dist1 - dist2):.4f} m farther)"
+    return (second, 2, note, True, math.inf) if dist2 < dist1 else (fit, 2, note, True, math.inf)
+
+
+#: A nearer point stands for a surface where this many other nearer points lie within
+_NEARER_SUPPORT_POINTS = 3
+#: this distance (m) of it; a point with fewer is stray (a flying pixel, an outlier).
+_NEARER_SUPPORT_M = 0.007
+
+
+def _unmodelled_nearer_m(closer: FloatArray, d2_closer: FloatArray, qc: QuadricConfig) -> float:
+    """Distance (m) from the HIP within which nearer points that make no surface of their own
+    (``closer``, HIP-relative, and their squared distances) stand for a surface; ``inf`` if
+    they stand for none.
+
+    Too many to be stray noise and too few or too scattered to model (the flank of a finger
+    lying on the chest, seen edge-on: 29-67 points, the chest 4 mm farther): what is not
+    modelled is not free space, so the answer is held no farther than the distance within
+    which ``second_surface_min_points`` of them lie (:func:`_held_no_farther`). Only points
+    with neighbours among them count: outliers scattered over the patch (flying pixels) stand
+    for no surface."""
+    k = qc.second_surface_min_points
+    if len(closer) < k:
+        return math.inf
+    neighbours = cKDTree(closer).query_ball_point(closer, _NEARER_SUPPORT_M, return_length=True)
+    supported = d2_closer[neighbours > _NEARER_SUPPORT_POINTS]  # itself counted
+    if len(supported) < k:
+        return math.inf
+    return float(np.sqrt(np.partition(supported, k - 1)[k - 1]))
+
+
+def _held_no_farther(estimate: SurfaceFit, unmodelled_m: float, hip: FloatArray) -> SurfaceFit:
+    """``estimate`` moved along its normal to ``unmodelled_m`` from the HIP where it is farther
+    (:func:`_unmodelled_nearer_m`). Never farther. Applied to the final answer, so that the
+    choice between fits (the nearest patch's, the one across a hole) is made as before and
+    keeps its normal."""
+    excess = estimate.d_proj(hip, 0.0) - unmodelled_m
+    if not excess > 0.0:
+        return estimate
+    note = f"held {excess * 1e3:.1f} mm nearer, to nearer points that make no surface"
+    return _moved_nearer(estimate, excess, note)
 
 
 #: Radius (m) of the patch whose plane residuals measure the noise,

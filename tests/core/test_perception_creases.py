@@ -11,6 +11,7 @@ from hapticloud.core.perception import (
     AbstractionConfig,
     CameraPipeline,
     PerceptionConfig,
+    SurfaceFit,
     curvature,
     estimate_surface,
 )
@@ -21,6 +22,8 @@ from hapticloud.core.sim import (
     step_bench_scenes,
 )
 from hapticloud.core.studies import perception as study
+from hypothesis import given
+from hypothesis import strategies as st
 from synthetic_patches import make_patch
 
 
@@ -158,9 +161,57 @@ def test_a_finger_lying_on_the_chest_is_not_reported_farther(gap_m: float) -> No
     # the 0.5 mm floor explains 31-41 % of the chest's points (1.7 mm of noise), and the finger
     # explains 42-63 % of its own. Held to a fixed 70 % the finger was outliers and the chest
     # answered, 3.4-4.5 mm too far: bias +0.93 / +1.39 mm over the 60 frames (gap 0 / 2 mm).
+    # Its flank seen edge-on, 29-67 points nearer than the chest that make no surface the fit
+    # accepts, with the chest 4 mm farther: held no farther than those points, |d_proj err| p90
+    # 3.45 / 3.87 -> 1.85 / 1.54 mm and the worst frame +4.2 -> +2.0 / +1.8 mm.
     row = _bench_row(finger_on_chest_scene(gap_m))
     assert row["dproj_bias_mm"] < 0.5
     assert row["valid_near"] >= 0.95
+    assert row["dproj_mm_p90"] < 3.0
+    assert row["dproj_max_mm"] < 3.0
+
+
+def _nearer_points(rng: np.random.Generator, spread_m: float, n: int = 40) -> np.ndarray:
+    """``n`` points 50-52 mm below a HIP at the origin, spread over ``spread_m`` square."""
+    xy = rng.uniform(-spread_m / 2, spread_m / 2, size=(n, 2))
+    return np.column_stack((xy, -0.05 - rng.uniform(0.0, 0.002, n)))
+
+
+def test_nearer_points_that_lie_together_bound_the_answer_and_scattered_ones_do_not() -> None:
+    rng = np.random.default_rng(11)
+    qc = AbstractionConfig().quadric
+    k = qc.second_surface_min_points
+    together = _nearer_points(rng, 0.012)  # a finger's flank: pixels side by side
+    d2 = np.einsum("ij,ij->i", together, together)
+    level = curvature._unmodelled_nearer_m(together, d2, qc)
+    assert level == pytest.approx(np.sqrt(np.sort(d2)[k - 1]))
+    scattered = _nearer_points(rng, 0.2)  # stray pixels over the patch: no surface
+    d2 = np.einsum("ij,ij->i", scattered, scattered)
+    assert curvature._unmodelled_nearer_m(scattered, d2, qc) == np.inf
+    few = together[: k - 1]
+    assert curvature._unmodelled_nearer_m(few, np.einsum("ij,ij->i", few, few), qc) == np.inf
+
+
+@given(
+    st.floats(0.0, 0.2),
+    st.floats(0.0, 0.3),
+    st.floats(-1.0, 1.0),
+    st.floats(-1.0, 1.0),
+)
+def test_an_answer_held_to_nearer_points_never_moves_farther(
+    dist: float, level: float, nx: float, ny: float
+) -> None:
+    normal = np.array([nx, ny, 1.0]) / np.linalg.norm([nx, ny, 1.0])
+    hip = np.array([0.3, -0.2, 1.1])
+    fit = SurfaceFit(True, hip - dist * normal, normal, "fitted")
+    held = curvature._held_no_farther(fit, level, hip)
+    assert np.allclose(held.normal, fit.normal, rtol=0.0, atol=1e-12)
+    assert held.d_proj(hip, 0.0) <= fit.d_proj(hip, 0.0) + 1e-12
+    assert held.d_proj(hip, 0.0) == pytest.approx(min(dist, level), abs=1e-9)
+    if level > dist + 1e-9:
+        assert held is fit
+    elif level < dist - 1e-9:
+        assert "held" in held.reason and held.reason.startswith("fitted; ")
 
 
 def test_the_finger_path_crosses_from_the_chest_onto_the_finger() -> None:
