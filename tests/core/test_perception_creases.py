@@ -190,6 +190,13 @@ def test_nearer_points_that_lie_together_bound_the_answer_and_scattered_ones_do_
     assert curvature._unmodelled_nearer_m(scattered, d2, qc) == np.inf
     few = together[: k - 1]
     assert curvature._unmodelled_nearer_m(few, np.einsum("ij,ij->i", few, few), qc) == np.inf
+    # Thousands of them: the nearest max_points decide (the k-d tree of all costs milliseconds).
+    many = _nearer_points(rng, 0.06, n=5000)
+    d2 = np.einsum("ij,ij->i", many, many)
+    every_one = AbstractionConfig().replace_path("quadric.max_points", 100000).quadric
+    level = curvature._unmodelled_nearer_m(many, d2, qc)
+    assert level == curvature._unmodelled_nearer_m(many, d2, every_one)
+    assert level == pytest.approx(np.sqrt(np.sort(d2)[k - 1]))
 
 
 @given(
