@@ -708,7 +708,7 @@ def _nearer_surface(
     return (second, 2, note, True, math.inf) if dist2 < dist1 else (fit, 2, note, True, math.inf)
 
 
-#: A nearer point stands for a surface where this many other nearer points lie within
+#: A nearer point stands for a surface where at least this many other nearer points lie within
 _NEARER_SUPPORT_POINTS = 3
 #: this distance (m) of it; a point with fewer is stray (a flying pixel, an outlier).
 _NEARER_SUPPORT_M = 0.007
@@ -728,12 +728,13 @@ def _unmodelled_nearer_m(closer: FloatArray, d2_closer: FloatArray, qc: QuadricC
     k = qc.second_surface_min_points
     if len(closer) < k:
         return math.inf
-    if len(closer) > qc.max_points:
+    keep = max(qc.max_points, k)
+    if len(closer) > keep:
         # The nearest ones decide, and a k-d tree of thousands costs milliseconds (5000: 6.6).
-        nearest = np.argpartition(d2_closer, qc.max_points - 1)[: qc.max_points]
+        nearest = np.argpartition(d2_closer, keep - 1)[:keep]
         closer, d2_closer = closer[nearest], d2_closer[nearest]
     neighbours = cKDTree(closer).query_ball_point(closer, _NEARER_SUPPORT_M, return_length=True)
-    supported = d2_closer[neighbours > _NEARER_SUPPORT_POINTS]  # itself counted
+    supported = d2_closer[neighbours - 1 >= _NEARER_SUPPORT_POINTS]  # itself counted
     if len(supported) < k:
         return math.inf
     return float(np.sqrt(np.partition(supported, k - 1)[k - 1]))

@@ -197,6 +197,14 @@ def test_nearer_points_that_lie_together_bound_the_answer_and_scattered_ones_do_
     level = curvature._unmodelled_nearer_m(many, d2, qc)
     assert level == curvature._unmodelled_nearer_m(many, d2, every_one)
     assert level == pytest.approx(np.sqrt(np.sort(d2)[k - 1]))
+    # Fewer points kept than the count that stands for a surface would switch the bound off.
+    strict = (
+        AbstractionConfig()
+        .replace_path("quadric.max_points", 20)
+        .replace_path("quadric.second_surface_min_points", 100)
+        .quadric
+    )
+    assert np.isfinite(curvature._unmodelled_nearer_m(many, d2, strict))
 
 
 @given(
