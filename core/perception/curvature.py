@@ -231,7 +231,7 @@ def quadric_surface(
     if isinstance(best, str):
         return _fallback(points, hip, camera_axis, cfg, best)
     if not levels:
-        return _held_no_farther(best.estimate, best.unmodelled_m, hip)
+        return _held_no_farther(best.estimate, _unmodelled_nearer_m(best.unmodelled, qc), hip)
     estimate = _nearer_across_a_hole(
         best.estimate, every, d2_every, hip, rel, d2, camera_axis, qc, levels[0]
     )
@@ -247,7 +247,7 @@ def quadric_surface(
     if not isinstance(wide_fit, _Answer):  # unreachable: the loop ended in the fallback then
         return estimate
     estimate = _nearest_patch_if_nearer(estimate, answers[patch_key], wide_fit.own_scale_m, hip)
-    return _held_no_farther(estimate, best.unmodelled_m, hip)
+    return _held_no_farther(estimate, _unmodelled_nearer_m(best.unmodelled, qc), hip)
 
 
 class _Answer(NamedTuple):
@@ -259,9 +259,9 @@ class _Answer(NamedTuple):
     #: Points lay nearer the HIP than the fitted surface by more than the noise: they made a
     #: second surface, or none of their own.
     nearer_points: bool
-    #: Distance (m) from the HIP within which such points that made no surface lie together
-    #: (:func:`_unmodelled_nearer_m`); ``inf``: none.
-    unmodelled_m: float
+    #: Such points that made no surface (HIP-relative, ``(N, 3)``; empty: none). Only the
+    #: answer that wins bounds the final one (:func:`_held_no_farther`).
+    unmodelled: FloatArray
 
 
 def _nearest_patch_if_nearer(
@@ -394,7 +394,7 @@ def _quadric_fit(
         nearer = _rest_nearer(fit, rel, d2, camera_axis, qc, wide)
         if nearer:
             return nearer
-    surfaces, note, nearer_points, own_scale, unmodelled = 1, "", False, fit.scale, math.inf
+    surfaces, note, nearer_points, own_scale, unmodelled = 1, "", False, fit.scale, _NONE
     if qc.second_surface:
         fit, surfaces, note, nearer_points, unmodelled = _nearer_surface(
             fit, every, d2_every, rel, d2, camera_axis, qc
@@ -619,7 +619,7 @@ def _nearer_surface(
     d2: FloatArray,
     camera_axis: FloatArray,
     qc: QuadricConfig,
-) -> tuple[_Fit, int, str, bool, float]:
+) -> tuple[_Fit, int, str, bool, FloatArray]:
     """The nearer of two surfaces when points lie nearer the HIP than the fitted surface allows.
 
     No point on the fitted surface is nearer the HIP than its closest point, so points nearer
@@ -633,7 +633,7 @@ def _nearer_surface(
     (:func:`_unmodelled_nearer_m`); scattered ones (outliers, flying pixels) do not.
     Returns the fit that answers, 1 or 2 surfaces, the note, whether points lay nearer than
     the first fit by more than the noise (then :func:`_nearest_patch_if_nearer` is asked too),
-    and :func:`_unmodelled_nearer_m` of such points that make no surface (``inf`` otherwise).
+    and such points if they make no surface (HIP-relative; empty otherwise).
     """
     dist1 = float(np.sqrt(fit.origin @ fit.origin))
     # Every point counts here, not only the fits' subsample: near a crease the nearer surface
@@ -642,18 +642,18 @@ def _nearer_surface(
     # measured (most frames of a single body; the same answer, about 50 us sooner).
     least = max(qc.second_surface_sigmas * qc.noise_floor_m, qc.second_surface_min_m)
     if dist1 <= least:
-        return fit, 1, "", False, math.inf
+        return fit, 1, "", False, _NONE
     if int(np.count_nonzero(d2_every < (dist1 - least) ** 2)) < qc.second_surface_min_points:
-        return fit, 1, "", False, math.inf
+        return fit, 1, "", False, _NONE
     noise = _patch_noise(rel, d2, qc)
     margin = max(qc.second_surface_sigmas * noise, qc.second_surface_min_m)
     limit = dist1 - margin
     if limit <= 0.0:
-        return fit, 1, "", False, math.inf
+        return fit, 1, "", False, _NONE
     closer = d2_every < limit * limit
     n_closer = int(np.count_nonzero(closer))
     if n_closer < qc.second_surface_min_points:
-        return fit, 1, "", False, math.inf
+        return fit, 1, "", False, _NONE
     tight = _tighten(fit, noise, camera_axis, qc)
     if isinstance(tight, _Fit):
         fit = tight
@@ -702,22 +702,24 @@ def _nearer_surface(
         # Nearer points that make no surface of their own: the first surface stands, and the
         # answer is held no farther than those of them that lie together (not stray pixels).
         note = f"{n_closer} points nearer than the surface fit no surface of their own"
-        return fit, 1, note, True, _unmodelled_nearer_m(every[closer], d2_every[closer], qc)
+        return fit, 1, note, True, every[closer]
     dist2 = float(np.sqrt(second.origin @ second.origin))
     note = f"nearer of two surfaces (the other {abs(dist1 - dist2):.4f} m farther)"
-    return (second, 2, note, True, math.inf) if dist2 < dist1 else (fit, 2, note, True, math.inf)
+    return (second, 2, note, True, _NONE) if dist2 < dist1 else (fit, 2, note, True, _NONE)
 
 
+#: No nearer points that make no surface (:attr:`_Answer.unmodelled`).
+_NONE = np.empty((0, 3))
+_NONE.flags.writeable = False
 #: A nearer point stands for a surface where at least this many other nearer points lie within
 _NEARER_SUPPORT_POINTS = 3
 #: this distance (m) of it; a point with fewer is stray (a flying pixel, an outlier).
 _NEARER_SUPPORT_M = 0.007
 
 
-def _unmodelled_nearer_m(closer: FloatArray, d2_closer: FloatArray, qc: QuadricConfig) -> float:
+def _unmodelled_nearer_m(closer: FloatArray, qc: QuadricConfig) -> float:
     """Distance (m) from the HIP within which nearer points that make no surface of their own
-    (``closer``, HIP-relative, and their squared distances) stand for a surface; ``inf`` if
-    they stand for none.
+    (``closer``, HIP-relative) stand for a surface; ``inf`` if they stand for none.
 
     Too many to be stray noise and too few or too scattered to model (the flank of a finger
     lying on the chest, seen edge-on: 29-67 points, the chest 4 mm farther): what is not
@@ -728,6 +730,7 @@ def _unmodelled_nearer_m(closer: FloatArray, d2_closer: FloatArray, qc: QuadricC
     k = qc.second_surface_min_points
     if len(closer) < k:
         return math.inf
+    d2_closer = np.einsum("ij,ij->i", closer, closer)
     keep = max(qc.max_points, k)
     if len(closer) > keep:
         # The nearest ones decide, and a k-d tree of thousands costs milliseconds (5000: 6.6).
@@ -742,9 +745,9 @@ def _unmodelled_nearer_m(closer: FloatArray, d2_closer: FloatArray, qc: QuadricC
 
 def _held_no_farther(estimate: SurfaceFit, unmodelled_m: float, hip: FloatArray) -> SurfaceFit:
     """``estimate`` moved along its normal to ``unmodelled_m`` from the HIP where it is farther
-    (:func:`_unmodelled_nearer_m`). Never farther. Applied to the final answer, so that the
-    choice between fits (the nearest patch's, the one across a hole) is made as before and
-    keeps its normal."""
+    (:func:`_unmodelled_nearer_m`, worked out once, for the answer that won). Never farther.
+    Applied to the final answer, so that the choice between fits (the nearest patch's, the one
+    across a hole) is made as before and keeps its normal."""
     excess = estimate.d_proj(hip, 0.0) - unmodelled_m
     if not excess > 0.0:
         return estimate

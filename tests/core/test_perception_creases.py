@@ -183,19 +183,18 @@ def test_nearer_points_that_lie_together_bound_the_answer_and_scattered_ones_do_
     k = qc.second_surface_min_points
     together = _nearer_points(rng, 0.012)  # a finger's flank: pixels side by side
     d2 = np.einsum("ij,ij->i", together, together)
-    level = curvature._unmodelled_nearer_m(together, d2, qc)
+    level = curvature._unmodelled_nearer_m(together, qc)
     assert level == pytest.approx(np.sqrt(np.sort(d2)[k - 1]))
     scattered = _nearer_points(rng, 0.2)  # stray pixels over the patch: no surface
-    d2 = np.einsum("ij,ij->i", scattered, scattered)
-    assert curvature._unmodelled_nearer_m(scattered, d2, qc) == np.inf
-    few = together[: k - 1]
-    assert curvature._unmodelled_nearer_m(few, np.einsum("ij,ij->i", few, few), qc) == np.inf
+    assert curvature._unmodelled_nearer_m(scattered, qc) == np.inf
+    for few in (together[: k - 1], np.empty((0, 3))):
+        assert curvature._unmodelled_nearer_m(few, qc) == np.inf
     # Thousands of them: the nearest max_points decide (the k-d tree of all costs milliseconds).
     many = _nearer_points(rng, 0.06, n=5000)
     d2 = np.einsum("ij,ij->i", many, many)
     every_one = AbstractionConfig().replace_path("quadric.max_points", 100000).quadric
-    level = curvature._unmodelled_nearer_m(many, d2, qc)
-    assert level == curvature._unmodelled_nearer_m(many, d2, every_one)
+    level = curvature._unmodelled_nearer_m(many, qc)
+    assert level == curvature._unmodelled_nearer_m(many, every_one)
     assert level == pytest.approx(np.sqrt(np.sort(d2)[k - 1]))
     # Fewer points kept than the count that stands for a surface would switch the bound off.
     strict = (
@@ -204,7 +203,7 @@ def test_nearer_points_that_lie_together_bound_the_answer_and_scattered_ones_do_
         .replace_path("quadric.second_surface_min_points", 100)
         .quadric
     )
-    assert np.isfinite(curvature._unmodelled_nearer_m(many, d2, strict))
+    assert np.isfinite(curvature._unmodelled_nearer_m(many, strict))
 
 
 @given(
